@@ -262,3 +262,18 @@ def test_diffuse_shading_equals_mitsuba_direct_lighting(mi, backend):
     assert interior.sum() > 500
     assert np.median(err) < 2e-4 and err.max() < 5e-3, (np.median(err), err.max())
     assert reference[background].max() == 0.0 and ours[background].max() == 0.0
+
+
+def test_shared_lights_gradients_agree():
+    """One camera-space light set for the whole batch (B = 1) with gradients, both backends."""
+    grads = {}
+    for backend in BACKENDS:
+        x, _ = random_inputs(n=3, h=6, w=5, requires_grad=False)
+        lights = CameraLights(x["directions"][:1].clone().requires_grad_(), x["irradiance"][:1].clone().requires_grad_(),
+                              x["positions"][:1].clone().requires_grad_(), x["intensity"][:1].clone().requires_grad_())
+        out = shade(x["normal"], x["albedo"], None, lights, None, depth=x["depth"], backend=backend)
+        (out * torch.linspace(0, 1, out.numel(), dtype=out.dtype).reshape(out.shape)).sum().backward()
+        grads[backend] = [t.grad for t in (lights.directions, lights.irradiance, lights.positions, lights.intensity)]
+    for a, b in zip(grads["drjit"], grads["torch"]):
+        assert a.shape == b.shape == (1, a.shape[1], 3)
+        torch.testing.assert_close(a, b)

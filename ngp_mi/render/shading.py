@@ -53,19 +53,19 @@ Vec = tuple[Any, Any, Any]
 class Ops:
     """The primitive functions the shading maths needs, for one array library."""
 
-    sqrt: Callable
+    rsqrt: Callable
     exp: Callable
     log: Callable
     maximum: Callable  # maximum(array, float)
     where: Callable    # where(condition, array, float)
 
 
-TORCH_OPS = Ops(torch.sqrt, torch.exp, torch.log, lambda a, b: torch.clamp(a, min=b), torch.where)
+TORCH_OPS = Ops(torch.rsqrt, torch.exp, torch.log, lambda a, b: torch.clamp(a, min=b), torch.where)
 
 
 def _drjit_ops() -> Ops:
     dr = backend.drjit()
-    return Ops(dr.sqrt, dr.exp, dr.log, dr.maximum, dr.select)
+    return Ops(dr.rsqrt, dr.exp, dr.log, dr.maximum, dr.select)
 
 
 def dot(a: Vec, b: Vec) -> Any:
@@ -74,13 +74,29 @@ def dot(a: Vec, b: Vec) -> Any:
 
 def safe_normalize(ops: Ops, v: Vec, eps: float = NORMAL_EPS) -> Vec:
     """``v / max(|v|, ε)``: exact for |v| ≥ ε, 0 at v = 0, gradient bounded by 1/ε (no sqrt of 0)."""
-    inv = 1.0 / ops.sqrt(ops.maximum(dot(v, v), eps * eps))
+    inv = ops.rsqrt(ops.maximum(dot(v, v), eps * eps))
     return (v[0] * inv, v[1] * inv, v[2] * inv)
 
 
 def specular_lobe(ops: Ops, cos_nh: Any, alpha: Any) -> Any:
-    """Blinn's lobe ``max(N·H, 0)^α`` (paper App. A, Eq. 1), 0 where N·H ≤ 0 for every α ≥ 0."""
-    return ops.where(cos_nh > 0, ops.exp(alpha * ops.log(ops.maximum(cos_nh, POW_FLOOR))), 0.0)
+    """Blinn's lobe ``max(N·H, 0)^α`` (paper App. A, Eq. 1), 0 where N·H ≤ 0 for every α ≥ 0.
+
+    A constant integer α in [1, 64] (the paper's α = 4) is evaluated by repeated squaring, which is
+    exact and avoids a log and an exp per pixel and light; any other α as ``exp(α ln x)``.
+    """
+    x = ops.maximum(cos_nh, POW_FLOOR)
+    if isinstance(alpha, (int, float)) and float(alpha).is_integer() and 1 <= alpha <= 64:
+        power, result, e = x, None, int(alpha)
+        while e:
+            if e & 1:
+                result = power if result is None else result * power
+            e >>= 1
+            if e:
+                power = power * power
+        lobe = result
+    else:
+        lobe = ops.exp(alpha * ops.log(x))
+    return ops.where(cos_nh > 0, lobe, 0.0)
 
 
 def blinn_phong_radiance(ops: Ops, normal: Vec, view: Vec, lights: Sequence[tuple[Vec, Vec]], albedo: Vec,
@@ -114,7 +130,7 @@ def point_light_incidence(ops: Ops, position: Vec, light_position: Vec, intensit
     """Direction towards a point light and its irradiance at normal incidence, ``I / max(r², ε_r²)``."""
     d = (light_position[0] - position[0], light_position[1] - position[1], light_position[2] - position[2])
     r2 = ops.maximum(dot(d, d), POINT_EPS * POINT_EPS)
-    inv_r = 1.0 / ops.sqrt(r2)
+    inv_r = ops.rsqrt(r2)
     return (d[0] * inv_r, d[1] * inv_r, d[2] * inv_r), (intensity[0] / r2, intensity[1] / r2, intensity[2] / r2)
 
 
@@ -194,7 +210,6 @@ def _torch_shade(normal, albedo, mask, depth, intr, lights: CameraLights, alpha,
 
     light_list = [(light_comps(lights.directions, i), light_comps(lights.irradiance, i))
                   for i in range(lights.directions.shape[1])]
-    light_list = [(safe_normalize(ops, d), e) for d, e in light_list]
     if lights.positions.shape[1] > 0:
         position = tuple(depth * r for r in ray)
         for i in range(lights.positions.shape[1]):
@@ -244,14 +259,25 @@ def _drjit_run(opts: dict, inputs: Sequence[torch.Tensor | None], grad_out: torc
     pixel = idx - batch * hw
     base3 = batch * (3 * hw) + pixel
 
+    # Every map element is read by exactly one lane, so the reverse-mode scatter needs no atomics.
+    permute = dr.ReduceMode.Permute
+
+    def map1(name: str) -> Any:
+        return dr.gather(Float, arrays[name], idx, mode=permute)
+
     def map3(name: str) -> Vec:
         a = arrays[name]
-        return (dr.gather(Float, a, base3), dr.gather(Float, a, base3 + hw), dr.gather(Float, a, base3 + 2 * hw))
+        return tuple(dr.gather(Float, a, base3 + c * hw, mode=permute) for c in range(3))  # type: ignore[return-value]
 
     def per_batch(name: str, width: int, offset: int) -> Any:
-        """Entry ``[b, offset]`` of a (B, width) array with B = 1 (shared) or the batch size."""
+        """Entry ``[b, offset]`` of a (B, width) array with B = 1 (shared) or the batch size.
+
+        A shared, constant entry is read through a literal index (a scalar load). An entry that needs
+        a gradient always uses a per-lane index: Dr.Jit's reverse of a literal-index gather is a
+        contended reduction, 2.5x slower (``shade`` gives such arrays one row per batch item).
+        """
         a, rows = arrays[name], x[name].shape[0]
-        index = batch * width + offset if rows > 1 else UInt(offset)
+        index = batch * width + offset if rows > 1 or wants.get(name) else UInt(offset)
         return dr.gather(Float, a, index)
 
     def light3(name: str, i: int) -> Vec:
@@ -265,26 +291,29 @@ def _drjit_run(opts: dict, inputs: Sequence[torch.Tensor | None], grad_out: torc
         v = Float(pixel // w) + 0.5
         ray = ((u - cx) / f, (v - cy) / f, Float(1.0))
     view = safe_normalize(ops, (-ray[0], -ray[1], -ray[2])) if opts["view"] == "per_pixel" else (0.0, 0.0, -1.0)
-    lights = [(safe_normalize(ops, light3("directions", i)), light3("irradiance", i)) for i in range(n_dir)]
+    lights = [(light3("directions", i), light3("irradiance", i)) for i in range(n_dir)]
     if n_point:
-        depth = dr.gather(Float, arrays["depth"], idx)
+        depth = map1("depth")
         position = (depth * ray[0], depth * ray[1], depth * ray[2])
         lights += [point_light_incidence(ops, position, light3("positions", i), light3("intensity", i))
                    for i in range(n_point)]
-    alpha = dr.gather(Float, arrays["alpha"], idx) if "alpha" in arrays else opts["alpha"]
+    alpha = map1("alpha") if "alpha" in arrays else opts["alpha"]
     spec = None
     if opts["mode"] == "blinn_phong":
         spec = map3("spec_albedo") if "spec_albedo" in arrays else (opts["spec_albedo"],) * 3
     rgb = blinn_phong_radiance(ops, map3("normal"), view, lights, map3("albedo"), opts["k_d"], spec,
                                opts["k_s"], alpha)
     if "mask" in arrays:
-        m = dr.gather(Float, arrays["mask"], idx)
+        m = map1("mask")
         rgb = (rgb[0] * m, rgb[1] * m, rgb[2] * m)
 
     if grad_out is None:
+        # Three conflict-free scatters evaluated together: one kernel, no extra copy (torch.stack of
+        # the channels would allocate and copy the output again, 5x the kernel's cost).
         out = dr.empty(Float, n * 3 * hw)
         for c in range(3):
-            dr.scatter(out, rgb[c], base3 + c * hw)
+            dr.scatter(out, rgb[c], base3 + c * hw, mode=permute)
+        dr.eval(out)
         return out.torch().reshape(n, 3, h, w)
 
     g = Float(grad_out.detach().to(normal.dtype).contiguous().reshape(-1))
@@ -367,7 +396,13 @@ def shade(normal: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor | None 
     opts = {"mode": mode, "view": view, "k_d": float(k_d), "k_s": float(k_s),
             "alpha": None if isinstance(alpha, torch.Tensor) else float(alpha),
             "spec_albedo": None if isinstance(spec_albedo, torch.Tensor) else float(spec_albedo)}
-    light_tensors = [cast(t) for t in (lights.directions, lights.irradiance, lights.positions, lights.intensity)]
+    # Directions are normalised once per (batch, light) here rather than once per pixel in the op.
+    directions = cast(lights.directions)
+    directions = torch.stack(safe_normalize(TORCH_OPS, directions.unbind(-1)), dim=-1)
+    light_tensors = [directions, *(cast(t) for t in (lights.irradiance, lights.positions, lights.intensity))]
+    if backend == "drjit" and n > 1:  # see per_batch in _drjit_run: one row per item when grads flow
+        light_tensors = [t.expand(n, -1, -1).contiguous() if t.requires_grad and t.shape[0] == 1 else t
+                         for t in light_tensors]
     if backend == "torch":
         return _torch_shade(cast(normal), cast(albedo), cast(mask), cast(depth), intr, CameraLights(*light_tensors),
                             cast(alpha), cast(spec_albedo), opts)
