@@ -1,6 +1,5 @@
 """Π_v: depth / normal / NOC maps against independent computations, and their gradients."""
 
-import dataclasses
 import math
 
 import numpy as np
@@ -12,7 +11,7 @@ import trimesh
 from ngp_mi import backend
 from ngp_mi.camera import Camera
 from ngp_mi.geometry.primitives import box, simple_chair
-from ngp_mi.render.depth import project_depth
+from ngp_mi.render.depth import project_depth, supersampled_depth_coverage
 
 
 def test_box_front_face_is_exact():
@@ -80,16 +79,7 @@ RES, SUPER, PHASES = 24, 96, 8
 
 
 def _supersampled(vertices, faces, cam, phase=(0.0, 0.0)):
-    """Pixel-averaged depth and coverage from pixel-centre projection at SUPER x the resolution.
-
-    ``phase`` shifts the sub-sample grid (in sub-samples). A fixed grid is a biased reference for
-    edges aligned with it (the chair's vertical legs, its horizontal back): a move of ±h crosses
-    a quantised number of sub-sample rows. Averaging over random phases removes that bias.
-    """
-    big = cam.with_resolution(RES * SUPER)
-    big = dataclasses.replace(big, cx=big.cx + phase[0], cy=big.cy + phase[1])
-    out = project_depth(vertices.float(), faces, big)
-    return F.avg_pool2d(out.depth.double(), SUPER), F.avg_pool2d(out.mask.double(), SUPER)
+    return supersampled_depth_coverage(vertices, faces, cam, SUPER, phase)
 
 
 def _finite_difference(move, faces, cam, w, h):
@@ -252,3 +242,21 @@ def test_bad_input_is_named():
         project_depth(torch.full((8, 3), float("nan")), mesh.faces, Camera.orbit(0, 0, 8))
     with pytest.raises(ValueError, match="one resolution"):
         project_depth(torch.tensor(mesh.vertices), mesh.faces, [Camera.orbit(0, 0, 8), Camera.orbit(0, 0, 16)])
+
+
+@pytest.mark.parametrize("silhouette_grad", [False, True])
+def test_shading_the_projected_maps_reaches_the_vertices(silhouette_grad):
+    """The README's example: Π_v then R_BP, a loss on the image, a gradient on the mesh."""
+    from ngp_mi.lights import overhead_rig
+    from ngp_mi.render.shading import shade
+
+    mesh = simple_chair()
+    cameras = [Camera.orbit(10.0, 30.0, 32), Camera.orbit(5.0, -50.0, 32)]
+    vertices = torch.tensor(mesh.vertices, requires_grad=True)
+    maps = project_depth(vertices, mesh.faces, cameras, silhouette_grad=silhouette_grad, spp=8)
+    albedo = torch.full((2, 3, 32, 32), 0.5)
+    image = shade(maps.normal, albedo, maps.mask, overhead_rig(), cameras, mode="blinn_phong",
+                  k_d=0.8, k_s=0.2, alpha=4.0)
+    (image.mean() + maps.depth.mean() + maps.noc.mean()).backward()
+    assert image.shape == (2, 3, 32, 32) and image.max() > 0
+    assert torch.isfinite(vertices.grad).all() and vertices.grad.abs().sum() > 0

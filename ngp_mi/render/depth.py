@@ -176,7 +176,8 @@ def normalized_object_coordinates(position: torch.Tensor, mask: torch.Tensor, ve
 
 
 def project_depth(vertices: torch.Tensor, faces: np.ndarray | torch.Tensor, cameras: Camera | Sequence[Camera],
-                  silhouette_grad: bool = False, spp: int = 16, seed: int = 0) -> DepthMaps:
+                  silhouette_grad: bool = False, spp: int = 16, boundary_spp: int | None = None,
+                  seed: int = 0) -> DepthMaps:
     """Π_v: project a triangle mesh into depth, mask, normal and NOC maps for each camera.
 
     Args:
@@ -185,7 +186,9 @@ def project_depth(vertices: torch.Tensor, faces: np.ndarray | torch.Tensor, came
         cameras: one camera or a list (all of one resolution).
         silhouette_grad: add visibility (silhouette) derivatives; depth and mask are then
             pixel-averaged over ``spp`` jittered samples (see the module docstring).
-        spp, seed: samples per pixel and seed of the silhouette mode.
+        spp, boundary_spp, seed: samples per pixel for the maps and their interior derivative,
+            for the silhouette (boundary) term (default ``max(1, spp // 4)``), and the seed;
+            silhouette mode only.
     """
     cameras = [cameras] if isinstance(cameras, Camera) else list(cameras)
     if not cameras:
@@ -203,5 +206,22 @@ def project_depth(vertices: torch.Tensor, faces: np.ndarray | torch.Tensor, came
     if silhouette_grad:
         from ngp_mi.render.depth_projective import render_depth_coverage
 
-        z, hit = render_depth_coverage(projector, vertices, cameras, spp=spp, seed=seed)
+        z, hit = render_depth_coverage(projector, vertices, cameras, spp=spp, boundary_spp=boundary_spp, seed=seed)
     return DepthMaps(depth=z, mask=hit, normal=normal, noc=noc)
+
+
+def supersampled_depth_coverage(vertices: torch.Tensor, faces: np.ndarray | torch.Tensor, camera: Camera,
+                                factor: int, phase: tuple[float, float] = (0.0, 0.0)) -> tuple[torch.Tensor, torch.Tensor]:
+    """Reference pixel-averaged depth and coverage (1, 1, H, W), float64, without any sampling noise.
+
+    Pixel-centre projection at ``factor`` × the resolution, average-pooled. ``phase`` shifts the
+    sub-sample grid (in sub-samples, within ±0.5): a fixed grid is a biased reference for edges
+    aligned with it (vertical legs, horizontal backs), since a small move crosses a quantised
+    number of sub-sample rows; averaging finite differences over random phases removes the bias.
+    """
+    big = camera.with_resolution(camera.width * factor, camera.height * factor)
+    big = dataclasses.replace(big, cx=big.cx + phase[0], cy=big.cy + phase[1])
+    with torch.no_grad():
+        out = project_depth(vertices.detach().float(), faces, big)
+    pool = torch.nn.functional.avg_pool2d
+    return pool(out.depth.double(), factor), pool(out.mask.double(), factor)

@@ -109,7 +109,7 @@ def _renderer(camera: Camera, spp: int) -> _SilhouetteRenderer:
 
 class _RenderDepthCoverage(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, projector: Any, cameras: Sequence[Camera], spp: int, seed: int,
+    def forward(ctx, projector: Any, cameras: Sequence[Camera], spp: int, boundary_spp: int, seed: int,
                 vertices: torch.Tensor):  # type: ignore[override]
         projector.set_vertices(vertices)
         images = []
@@ -119,7 +119,7 @@ class _RenderDepthCoverage(torch.autograd.Function):
             r.integrator.set_camera(camera)
             image = r.integrator.render(projector.scene, r.sensor, seed=seed + i, spp=spp)
             images.append(image.torch()[..., :2].permute(2, 0, 1))
-        ctx.projector, ctx.cameras, ctx.spp, ctx.seed = projector, list(cameras), spp, seed
+        ctx.projector, ctx.cameras, ctx.spp, ctx.boundary_spp, ctx.seed = projector, list(cameras), spp, boundary_spp, seed
         ctx.save_for_backward(vertices)
         out = torch.stack(images)
         return out[:, :1].contiguous(), out[:, 1:2].contiguous()
@@ -136,17 +136,28 @@ class _RenderDepthCoverage(torch.autograd.Function):
             set_sensor_camera(r.sensor, camera)
             r.integrator.set_camera(camera)
             grad_image = torch.stack([g_depth[i, 0], g_mask[i, 0], zero[i]], dim=-1).to(torch.float32).contiguous()
+            # A runtime spp would override both counts; with 0 the integrator's own are used.
+            r.integrator.sppc, r.integrator.sppp = ctx.spp, ctx.boundary_spp
             r.integrator.render_backward(projector.scene, projector.params, mi.TensorXf(grad_image),
-                                         r.sensor, seed=ctx.seed + i, spp=ctx.spp)
+                                         r.sensor, seed=ctx.seed + i, spp=0)
         grad = dr.grad(projector.params[projector.key]).torch().reshape(-1, 3).to(vertices.dtype)
         dr.disable_grad(positions)
-        return None, None, None, None, grad
+        return None, None, None, None, None, grad
 
 
 def render_depth_coverage(projector: Any, vertices: torch.Tensor, cameras: Sequence[Camera], spp: int = 16,
-                          seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pixel-averaged depth and coverage, (N, 1, H, W) each, differentiable including silhouettes."""
-    if spp < 1:
-        raise ValueError(f"spp must be >= 1, got {spp}")
-    return _RenderDepthCoverage.apply(projector, list(cameras), int(spp), int(seed), vertices)
+                          boundary_spp: int | None = None, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pixel-averaged depth and coverage, (N, 1, H, W) each, differentiable including silhouettes.
+
+    ``spp`` samples per pixel estimate the maps and their interior derivative; ``boundary_spp``
+    (default: ``max(1, spp // 4)``) per pixel sample the silhouette edges. The boundary term
+    dominates the cost (its samples scale with the image area, not the silhouette length), so a
+    small ``boundary_spp`` buys most of the speed. Its variance is high when the loss gradient is a
+    small difference of opposite silhouettes (a sideways move); ``bench/bench_depth.py``
+    tabulates bias, spread and time per ``boundary_spp``.
+    """
+    boundary_spp = max(1, spp // 4) if boundary_spp is None else boundary_spp
+    if spp < 1 or boundary_spp < 1:
+        raise ValueError(f"spp and boundary_spp must be >= 1, got {spp} and {boundary_spp}")
+    return _RenderDepthCoverage.apply(projector, list(cameras), int(spp), int(boundary_spp), int(seed), vertices)
 
