@@ -1,0 +1,1 @@
+"""Data on disk: OpenEXR files, dataset folders, torch Datasets."""

@@ -1,0 +1,73 @@
+"""Maps derived from a depth map through the camera (torch, differentiable, batched NCHW).
+
+* :func:`backproject` — camera-space points ``z · K⁻¹ [u, v, 1]`` at pixel centres.
+* :func:`noc_from_depth` — the paper's ``NOC(d, K, E)`` (Sec. 3.4): world points normalised by a
+  bounding box, used as G_da's input and in the NOC adversarial and cycle losses (App. B).
+* :func:`normals_from_depth` — camera-space normals by central differences of the back-projected
+  points (the paper's "NGP w/o G_n" baseline computes normals from the coarse depth).
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from ngp_mi.camera import Camera
+
+
+def _per_view(cameras: Camera | Sequence[Camera], batch: int) -> list[Camera]:
+    cameras = [cameras] if isinstance(cameras, Camera) else list(cameras)
+    if len(cameras) == 1:
+        cameras = cameras * batch
+    if len(cameras) != batch:
+        raise ValueError(f"got {len(cameras)} cameras for a batch of {batch}")
+    return cameras
+
+
+def backproject(depth: torch.Tensor, cameras: Camera | Sequence[Camera]) -> torch.Tensor:
+    """(N, 1, H, W) z-depth → (N, 3, H, W) camera-space points (OpenCV axes)."""
+    n, _, h, w = depth.shape
+    rays = torch.stack([torch.as_tensor(c.pixel_rays(), dtype=depth.dtype, device=depth.device)
+                        for c in _per_view(cameras, n)])  # (N, H, W, 3)
+    return depth * rays.permute(0, 3, 1, 2)
+
+
+def noc_from_depth(depth: torch.Tensor, mask: torch.Tensor, cameras: Camera | Sequence[Camera],
+                   bounds: np.ndarray | torch.Tensor) -> torch.Tensor:
+    """NOC(d, K, E): world points ``Rᵀ (x_cam − t)`` mapped by ``bounds`` (2, 3) to [0, 1]³, 0 off the mask."""
+    n = depth.shape[0]
+    cams = _per_view(cameras, n)
+    points = backproject(depth, cams)
+    R = torch.stack([torch.as_tensor(c.R, dtype=depth.dtype, device=depth.device) for c in cams])
+    t = torch.stack([torch.as_tensor(c.t, dtype=depth.dtype, device=depth.device) for c in cams])
+    world = torch.einsum("nji,njhw->nihw", R, points - t[:, :, None, None])
+    bounds = torch.as_tensor(bounds, dtype=depth.dtype, device=depth.device)
+    lo, hi = bounds[0].reshape(1, 3, 1, 1), bounds[1].reshape(1, 3, 1, 1)
+    return (world - lo) / torch.clamp(hi - lo, min=1e-12) * (mask > 0)
+
+
+def normals_from_depth(depth: torch.Tensor, mask: torch.Tensor, cameras: Camera | Sequence[Camera]) -> torch.Tensor:
+    """Camera-space unit normals from central differences of back-projected points, facing the camera.
+
+    Pixels whose 4-neighbourhood leaves the mask use one-sided differences towards the inside;
+    background pixels are 0.
+    """
+    points = backproject(depth, cameras)
+    inside = (mask > 0).to(depth.dtype)
+
+    def derivative(axis: int) -> torch.Tensor:
+        # Central difference where both neighbours are on the object, else one-sided.
+        fwd = torch.roll(points, -1, axis) - points
+        bwd = points - torch.roll(points, 1, axis)
+        ok_f = torch.roll(inside, -1, axis) * inside
+        ok_b = torch.roll(inside, 1, axis) * inside
+        both = ok_f * ok_b
+        return both * 0.5 * (fwd + bwd) + (ok_f - both) * fwd + (ok_b - both) * bwd
+
+    du, dv = derivative(3), derivative(2)
+    normal = torch.cross(du, dv, dim=1)
+    normal = normal / torch.clamp(normal.norm(dim=1, keepdim=True), min=1e-12)
+    facing = (normal * points).sum(1, keepdim=True) > 0
+    return torch.where(facing, -normal, normal) * inside
