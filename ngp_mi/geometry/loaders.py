@@ -1,0 +1,106 @@
+"""Loading user meshes: single files, multi-part files, plain folders and ShapeNet-style trees.
+
+Formats are read by trimesh (OBJ, PLY, OFF, STL, GLB / glTF, …). A file with several geometries
+(OBJ groups, glTF nodes) becomes one :class:`TriangleMesh` whose faces carry the index of the
+part they came from. Every mesh is validated and normalised (``geometry.mesh.normalize_mesh``);
+a bad file raises :class:`MeshError` with the file and the reason, so that batch jobs can skip it
+and report why.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ngp_mi.geometry.mesh import TriangleMesh, normalize_mesh
+
+log = logging.getLogger(__name__)
+
+MESH_SUFFIXES = (".obj", ".ply", ".off", ".stl", ".glb", ".gltf")
+SHAPENET_MODEL = Path("models") / "model_normalized.obj"
+DEGENERATE_AREA = 1e-12
+
+
+class MeshError(ValueError):
+    """A mesh file that cannot be used; ``str()`` names the file and the reason."""
+
+    def __init__(self, path: str | Path, reason: str):
+        super().__init__(f"{path}: {reason}")
+        self.path, self.reason = str(path), reason
+
+
+@dataclasses.dataclass(frozen=True)
+class MeshSource:
+    """A mesh on disk and the id it gets in datasets (``synset/model_id`` or a relative path)."""
+
+    id: str
+    path: Path
+
+
+def load_mesh(path: str | Path, normalize: bool = True) -> TriangleMesh:
+    """Read, merge, validate and (by default) normalise one mesh file.
+
+    Faces of zero area are dropped (logged); a file with no faces left, non-finite vertices or
+    that trimesh cannot parse raises :class:`MeshError`.
+    """
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise MeshError(path, "no such file")
+    try:
+        loaded = trimesh.load(str(path), process=False)
+    except Exception as exc:  # trimesh raises many exception types for bad files
+        raise MeshError(path, f"unreadable ({type(exc).__name__}: {exc})") from None
+    if isinstance(loaded, trimesh.Scene):
+        parts = [g for g in loaded.dump(concatenate=False) if isinstance(g, trimesh.Trimesh)]
+    elif isinstance(loaded, trimesh.Trimesh):
+        parts = [loaded]
+    else:
+        raise MeshError(path, f"contains no triangles (trimesh read a {type(loaded).__name__})")
+    parts = [p for p in parts if len(p.faces) > 0]
+    if not parts:
+        raise MeshError(path, "empty mesh: no faces")
+
+    vertices, faces, part_ids, offset = [], [], [], 0
+    for index, part in enumerate(parts):
+        v = np.asarray(part.vertices, np.float64)
+        vertices.append(v)
+        faces.append(np.asarray(part.faces, np.int64) + offset)
+        part_ids.append(np.full(len(part.faces), index, np.int32))
+        offset += len(v)
+    v, f, ids = np.concatenate(vertices), np.concatenate(faces), np.concatenate(part_ids)
+    if not np.all(np.isfinite(v)):
+        raise MeshError(path, f"{int((~np.isfinite(v)).any(1).sum())} vertices are not finite")
+    corners = v[f]
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    keep = area > DEGENERATE_AREA * max(1.0, float(np.ptp(v, axis=0).max()) ** 2)
+    if not keep.any():
+        raise MeshError(path, f"all {len(f)} faces are degenerate (zero area)")
+    if not keep.all():
+        log.info("%s: dropped %d degenerate faces of %d", path, int((~keep).sum()), len(f))
+    try:
+        mesh = TriangleMesh(v, f[keep], ids[keep], name=path.stem)
+    except ValueError as exc:
+        raise MeshError(path, str(exc)) from None
+    return normalize_mesh(mesh) if normalize else mesh
+
+
+def find_meshes(root: str | Path) -> list[MeshSource]:
+    """Mesh files under ``root``, sorted by id.
+
+    A ShapeNet-style tree (``<synset>/<model_id>/models/model_normalized.obj``) gives ids
+    ``synset/model_id``; otherwise every file with a mesh suffix gives its path relative to
+    ``root`` without the suffix.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise ValueError(f"{root}: not a folder of meshes")
+    shapenet = sorted(root.glob(f"*/*/{SHAPENET_MODEL.as_posix()}"))
+    if shapenet:
+        return [MeshSource(f"{p.parents[2].name}/{p.parents[1].name}", p) for p in shapenet]
+    files = sorted(p for p in root.rglob("*") if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
+    return [MeshSource(p.relative_to(root).with_suffix("").as_posix(), p) for p in files]
