@@ -1,0 +1,134 @@
+"""ngp-mi render-dataset: layout, manifest, determinism, resume, shards, bad input, scene files."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+
+from ngp_mi.data.exr import read_exr
+from ngp_mi.data.render_dataset import DatasetConfig, load_manifest, parse_shard, render_dataset
+
+
+def run(out, **kwargs):
+    config = DatasetConfig(**{"source": "chair", "num_shapes": 2, "views": 2, "resolution": 24, **kwargs})
+    return render_dataset(config, out, progress=False)
+
+
+def test_layout_manifest_and_files(tmp_path):
+    summary = run(tmp_path, real_spp=4)
+    assert summary["views_rendered"] == 4 and not summary["skipped_shapes"]
+    records = load_manifest(tmp_path)
+    assert [(r["shape_id"], r["view"]) for r in records] == [
+        ("chair/000000", 0), ("chair/000000", 1), ("chair/000001", 0), ("chair/000001", 1)]
+    r = records[0]
+    for key in ("theta_deg", "phi_deg", "K", "E", "lights", "seed", "width", "channels", "versions", "shape"):
+        assert key in r
+    assert 0 <= r["theta_deg"] <= 20 and -90 <= r["phi_deg"] <= 90 and len(r["lights"]) == 4
+    maps = read_exr(tmp_path / r["files"]["maps"])
+    assert set(maps) == {"depth", "normal", "albedo", "noc", "mask"} and maps["depth"].shape == (24, 24)
+    real = read_exr(tmp_path / r["files"]["real"])["rgb"]
+    assert real.shape == (24, 24, 3) and real.max() > 0
+    assert (tmp_path / r["files"]["real_png"]).exists()
+    assert json.loads((tmp_path / "summary.json").read_text())["views_rendered"] == 4
+
+
+def test_same_seed_same_files(tmp_path):
+    run(tmp_path / "a", real_spp=2)
+    run(tmp_path / "b", real_spp=2)
+    for r_a, r_b in zip(load_manifest(tmp_path / "a"), load_manifest(tmp_path / "b")):
+        assert (r_a["K"], r_a["E"]) == (r_b["K"], r_b["E"])
+        for key in ("maps", "real"):
+            a, b = read_exr(tmp_path / "a" / r_a["files"][key]), read_exr(tmp_path / "b" / r_b["files"][key])
+            for channel in a:
+                np.testing.assert_array_equal(a[channel], b[channel])
+    other = DatasetConfig(source="chair", num_shapes=2, views=2, resolution=24, seed=1)
+    render_dataset(other, tmp_path / "c", progress=False)
+    assert load_manifest(tmp_path / "c")[0]["E"] != load_manifest(tmp_path / "a")[0]["E"]
+
+
+def test_resume_renders_only_what_is_missing(tmp_path):
+    run(tmp_path, views=3)
+    manifest = tmp_path / "manifest.jsonl"
+    lines = manifest.read_text().splitlines()
+    manifest.write_text("\n".join(lines[:2]) + "\n" + lines[2][:40])  # killed while appending line 3
+    summary = run(tmp_path, views=3)
+    assert summary["views_before"] == 2 and summary["views_rendered"] == 4
+    records = load_manifest(tmp_path)
+    assert len(records) == 6 and len(manifest.read_text().splitlines()) == 6
+
+
+def test_resume_with_other_settings_is_refused(tmp_path):
+    run(tmp_path)
+    with pytest.raises(ValueError, match=r"other settings \(resolution\)"):
+        run(tmp_path, resolution=32)
+
+
+def test_shards_split_the_work_and_merge(tmp_path):
+    config = DatasetConfig(source="car", num_shapes=3, views=2, resolution=16)
+    render_dataset(config, tmp_path / "whole", progress=False)
+    for k in range(2):
+        render_dataset(config, tmp_path / "sharded", shard=(k, 2), progress=False)
+    assert sorted(p.name for p in (tmp_path / "sharded").glob("manifest*.jsonl")) == [
+        "manifest.shard-0-of-2.jsonl", "manifest.shard-1-of-2.jsonl"]
+    whole, sharded = load_manifest(tmp_path / "whole"), load_manifest(tmp_path / "sharded")
+    assert [(r["shape_id"], r["view"], r["E"]) for r in whole] == [(r["shape_id"], r["view"], r["E"]) for r in sharded]
+    np.testing.assert_array_equal(read_exr(tmp_path / "whole" / whole[-1]["files"]["maps"])["depth"],
+                                  read_exr(tmp_path / "sharded" / sharded[-1]["files"]["maps"])["depth"])
+    with pytest.raises(ValueError, match="K/N"):
+        parse_shard("2/2")
+
+
+def _mesh_folder(tmp_path):
+    folder = tmp_path / "meshes"
+    folder.mkdir()
+    trimesh.creation.box(extents=(1, 2, 1)).export(folder / "good.obj")
+    (folder / "bad.obj").write_text("v 0 0 0\nv 1 0 0\nv nan 1 0\nf 1 2 3\n")
+    return folder
+
+
+def test_bad_mesh_is_skipped_with_reason_and_strict_fails(tmp_path):
+    folder = _mesh_folder(tmp_path)
+    config = DatasetConfig(source=str(folder), num_shapes=10, views=2, resolution=16)
+    summary = render_dataset(config, tmp_path / "out", progress=False)
+    assert summary["views_rendered"] == 2
+    assert list(summary["skipped_shapes"]) == ["bad"] and "not finite" in summary["skipped_shapes"]["bad"]
+    assert "bad.obj" in (tmp_path / "out" / "render-dataset.log").read_text()
+    cli = [sys.executable, "-m", "ngp_mi.cli", "render-dataset", "--source", str(folder), "--views", "1",
+           "--res", "16", "--quiet"]
+    done = subprocess.run(cli + ["--out", str(tmp_path / "cli")], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and "skipped bad" in done.stdout
+    done = subprocess.run(cli + ["--out", str(tmp_path / "strict"), "--strict"], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode != 0 and "--strict" in done.stderr
+
+
+def test_only_requested_channels(tmp_path):
+    run(tmp_path, channels=("depth", "mask"))
+    record = load_manifest(tmp_path)[0]
+    assert set(read_exr(tmp_path / record["files"]["maps"])) == {"depth", "mask"}
+    with pytest.raises(ValueError, match="subset of"):
+        DatasetConfig(source="chair", channels=("depth", "colour"))
+
+
+SCENE_XML = """<scene version="3.0.0">
+  <shape type="sphere"><float name="radius" value="0.35"/>
+    <bsdf type="diffuse"><rgb name="reflectance" value="0.6, 0.3, 0.2"/></bsdf></shape>
+  <emitter type="directional"><vector name="direction" value="0, -1, -1"/>
+    <rgb name="irradiance" value="3, 3, 3"/></emitter>
+</scene>"""
+
+
+def test_scene_file_source_with_its_own_lights(tmp_path):
+    (tmp_path / "ball.xml").write_text(SCENE_XML)
+    (tmp_path / "empty.xml").write_text('<scene version="3.0.0"/>')
+    config = DatasetConfig(source=str(tmp_path), num_shapes=5, views=2, resolution=24, real_spp=4, lights="scene")
+    summary = render_dataset(config, tmp_path / "out", progress=False)
+    assert summary["views_rendered"] == 2 and "no shapes" in summary["skipped_shapes"]["empty"]
+    record = load_manifest(tmp_path / "out")[0]
+    maps = read_exr(tmp_path / "out" / record["files"]["maps"])
+    assert maps["mask"].sum() > 20
+    np.testing.assert_allclose(maps["albedo"][maps["mask"] > 0], [[0.6, 0.3, 0.2]] * int(maps["mask"].sum()), atol=1e-6)
+    assert read_exr(tmp_path / "out" / record["files"]["real"])["rgb"].max() > 0
