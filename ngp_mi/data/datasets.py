@@ -1,0 +1,121 @@
+"""torch Datasets over rendered dataset folders and image folders.
+
+Maps are returned in physical units (depth in scene units, normals as unit vectors, albedo and
+NOC in [0, 1]) as float32 CHW tensors; scaling to [−1, 1] happens at the network boundary.
+
+* :class:`ReflectanceMapDataset` — the "real" reflectance maps (depth, normal, albedo, NOC, mask)
+  and the camera of each view of a ``render-dataset`` folder.
+* :class:`DepthDataset` — depth (+ mask) and camera only: the shapes to be decorated.
+* :class:`ImageFolderDataset` — the "real image" domain: the path-traced images of a dataset
+  folder or a folder of photographs (PNG / JPEG / EXR), resized and randomly flipped as in the paper.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from ngp_mi.data.exr import read_exr
+from ngp_mi.data.render_dataset import load_manifest
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
+
+
+def _chw(array: np.ndarray) -> torch.Tensor:
+    tensor = torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))
+    return tensor[None] if tensor.ndim == 2 else tensor.permute(2, 0, 1).contiguous()
+
+
+class ReflectanceMapDataset(Dataset):
+    """Views of a ``render-dataset`` folder: a dict of maps plus ``K`` (3, 3), ``E`` (3, 4) and ids."""
+
+    def __init__(self, root: str | Path, channels: Sequence[str] | None = None):
+        self.root = Path(root)
+        self.records = load_manifest(self.root)
+        available = self.records[0]["channels"]
+        self.channels = tuple(channels or available)
+        missing = [c for c in self.channels if c not in available]
+        if missing:
+            raise ValueError(f"{self.root}: dataset has channels {available}, not {missing}")
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        record = self.records[index]
+        maps = read_exr(self.root / record["files"]["maps"], self.channels)
+        item: dict[str, Any] = {name: _chw(maps[name]) for name in self.channels}
+        item["K"] = torch.tensor(record["K"], dtype=torch.float32)
+        item["E"] = torch.tensor(record["E"], dtype=torch.float32)
+        item["bounds"] = torch.tensor(record["bounds"], dtype=torch.float32)
+        item["shape_id"], item["view"] = record["shape_id"], record["view"]
+        return item
+
+
+class DepthDataset(ReflectanceMapDataset):
+    """Depth maps (and masks) with cameras: the coarse shapes NGP decorates."""
+
+    def __init__(self, root: str | Path):
+        super().__init__(root, channels=("depth", "mask"))
+
+
+class ImageFolderDataset(Dataset):
+    """RGB images in [0, 1] as (3, H, W) float32, optionally resized and randomly flipped.
+
+    ``root`` is a folder searched recursively (a dataset folder's ``real/`` images, or photos) or a
+    ``render-dataset`` folder (its manifest's real images). PNG / JPEG are sRGB and returned as
+    such unless ``linear=True``; EXR is linear and returned as such unless ``linear=False``.
+    """
+
+    def __init__(self, root: str | Path, size: int | None = None, flip: bool = True, linear: bool = False,
+                 generator: torch.Generator | None = None):
+        self.root = Path(root)
+        if (self.root / "dataset.json").exists():
+            self.files = [self.root / r["files"]["real_png"] for r in load_manifest(self.root) if "real_png" in r["files"]]
+        elif self.root.is_dir():
+            self.files = sorted(p for p in self.root.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
+        else:
+            raise ValueError(f"{self.root}: not a folder of images")
+        if not self.files:
+            raise ValueError(f"{self.root}: no images ({', '.join(IMAGE_SUFFIXES)}) found")
+        self.size, self.flip, self.linear, self.generator = size, flip, linear, generator
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def _load(self, path: Path) -> np.ndarray:
+        from PIL import Image
+
+        from ngp_mi.viz import linear_to_srgb
+
+        if path.suffix.lower() == ".exr":
+            channels = read_exr(path)
+            rgb = channels.get("rgb")
+            if rgb is None:
+                raise ValueError(f"{path}: EXR image needs an 'rgb' layer, has {sorted(channels)}")
+            image = rgb if self.linear else linear_to_srgb(rgb)  # resized in __getitem__
+        else:
+            try:
+                with Image.open(path) as im:
+                    im = im.convert("RGB")
+                    if self.size and im.size != (self.size, self.size):
+                        im = im.resize((self.size, self.size), Image.BILINEAR)
+                    image = np.asarray(im, dtype=np.float32) / 255.0
+            except OSError as exc:
+                raise ValueError(f"{path}: unreadable image ({exc})") from None
+            if self.linear:
+                image = np.where(image <= 0.04045, image / 12.92, ((image + 0.055) / 1.055) ** 2.4)
+        return image
+
+    def __getitem__(self, index: int) -> torch.Tensor:
+        image = _chw(self._load(self.files[index]))
+        if self.size and image.shape[-2:] != (self.size, self.size):
+            image = torch.nn.functional.interpolate(image[None], size=(self.size, self.size), mode="bilinear",
+                                                    align_corners=False)[0]
+        if self.flip and torch.rand((), generator=self.generator) < 0.5:
+            image = image.flip(-1)
+        return image
