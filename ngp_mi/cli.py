@@ -37,7 +37,8 @@ def _render_dataset(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     config = DatasetConfig(source=args.source, num_shapes=args.num_shapes, views=args.views, resolution=args.res,
                            channels=tuple(c.strip() for c in args.channels.split(",") if c.strip()),
-                           real_spp=args.real_spp, lights=args.lights, seed=args.seed, compression=args.compression)
+                           real_spp=args.real_spp, lights=args.lights, seed=args.seed, compression=args.compression,
+                           half=args.half)
     summary = render_dataset(config, args.out, shard=parse_shard(args.shard), strict=args.strict,
                              progress=not args.quiet)
     print(f"render-dataset: {summary['views_rendered']} views rendered ({summary['views_per_second']} views/s), "
@@ -96,6 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
     data.add_argument("--shard", default="0/1", help="K/N: render every N-th shape starting at K (default: 0/1)")
     data.add_argument("--seed", type=int, default=0, help="seed of shapes, views and noise (default: %(default)s)")
     data.add_argument("--compression", default="zip", choices=["zip", "zstd", "piz", "none"], help="EXR compression")
+    data.add_argument("--half", action="store_true", help="store all channels but depth as 16-bit floats "
+                                                          "(half the size, ~40%% faster to write)")
     data.add_argument("--strict", action="store_true", help="exit non-zero if any shape was skipped")
     data.add_argument("--quiet", action="store_true", help="no progress bar")
     data.set_defaults(func=_render_dataset)

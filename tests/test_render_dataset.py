@@ -105,6 +105,20 @@ def test_bad_mesh_is_skipped_with_reason_and_strict_fails(tmp_path):
     assert done.returncode != 0 and "--strict" in done.stderr
 
 
+def test_half_precision_keeps_depth_in_float32(tmp_path):
+    run(tmp_path / "full")
+    run(tmp_path / "half", half=True)
+    import OpenEXR
+
+    record = load_manifest(tmp_path / "half")[0]
+    parts = OpenEXR.File(str(tmp_path / "half" / record["files"]["maps"])).channels()
+    assert parts["depth"].pixels.dtype == np.float32 and parts["normal"].pixels.dtype == np.float16
+    full = read_exr(tmp_path / "full" / record["files"]["maps"])
+    half = read_exr(tmp_path / "half" / record["files"]["maps"])
+    np.testing.assert_array_equal(half["depth"], full["depth"])
+    np.testing.assert_allclose(half["noc"], full["noc"], atol=5e-4)
+
+
 def test_only_requested_channels(tmp_path):
     run(tmp_path, channels=("depth", "mask"))
     record = load_manifest(tmp_path)[0]

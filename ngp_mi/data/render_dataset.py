@@ -22,9 +22,11 @@ import json
 import logging
 import os
 import platform
+import queue
+import threading
 import time
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 
@@ -52,6 +54,7 @@ class DatasetConfig:
     lights: str = "rig"
     seed: int = 0
     compression: str = "zip"
+    half: bool = False  # store every channel but depth as 16-bit float
     view_distribution: ViewDistribution = ViewDistribution()
 
     def __post_init__(self) -> None:
@@ -136,7 +139,12 @@ def load_manifest(root: str | Path) -> list[dict[str, Any]]:
 
 
 class _ManifestWriter:
-    """Appends records durably; drops a torn last line left by a killed run first."""
+    """Appends records, one line each; drops a torn last line left by a killed run first.
+
+    Each line is flushed to the OS, which survives the process being killed (the failure a long
+    job must tolerate); it is not fsync'ed per view (1 ms each), so a power loss may lose the last
+    records, whose views are then simply rendered again.
+    """
 
     def __init__(self, path: Path):
         self.path = path
@@ -149,10 +157,49 @@ class _ManifestWriter:
     def append(self, record: dict[str, Any]) -> None:
         self.file.write(json.dumps(record) + "\n")
         self.file.flush()
-        os.fsync(self.file.fileno())
 
     def close(self) -> None:
+        self.file.flush()
+        os.fsync(self.file.fileno())
         self.file.close()
+
+
+class _BackgroundWriter:
+    """Writes each view's files and then its manifest line, in order, on one thread.
+
+    EXR compression releases the GIL for part of its work, so it overlaps the next view's
+    rendering. A failed write (disk full, permissions) stops the job at the next submit.
+    """
+
+    def __init__(self, manifest: _ManifestWriter, depth: int = 8):
+        self.manifest = manifest
+        self.jobs: queue.Queue = queue.Queue(maxsize=depth)
+        self.error: BaseException | None = None
+        self.thread = threading.Thread(target=self._run, name="render-dataset-writer", daemon=True)
+        self.thread.start()
+
+    def submit(self, write: Callable[[], None], record: dict[str, Any], done: Callable[[], None]) -> None:
+        if self.error is not None:
+            raise self.error
+        self.jobs.put((write, record, done))
+
+    def _run(self) -> None:
+        while (job := self.jobs.get()) is not None:
+            write, record, done = job
+            if self.error is None:
+                try:
+                    write()
+                    self.manifest.append(record)
+                    done()
+                except BaseException as exc:  # reported to the main thread
+                    self.error = exc
+
+    def close(self) -> None:
+        self.jobs.put(None)
+        self.thread.join()
+        self.manifest.close()
+        if self.error is not None:
+            raise self.error
 
 
 def _check_settings(out: Path, config: DatasetConfig) -> None:
@@ -192,7 +239,7 @@ def render_dataset(config: DatasetConfig, out: str | Path, shard: tuple[int, int
         summary: dict[str, Any] = {"shard": list(shard), "views_total": total, "views_before": len(done),
                                    "views_rendered": 0, "skipped_shapes": {}}
         versions = {"ngp_mi": __version__, **backend.versions(), "python": platform.python_version()}
-        writer = _ManifestWriter(manifest_path)
+        writer = _BackgroundWriter(_ManifestWriter(manifest_path))
         start = time.perf_counter()
         bar = tqdm(total=total, initial=len(done), unit="view", disable=not progress, dynamic_ncols=True,
                    desc=f"render-dataset{suffix or ''}")
@@ -211,8 +258,10 @@ def render_dataset(config: DatasetConfig, out: str | Path, shard: tuple[int, int
                     continue
                 summary["views_rendered"] += rendered
         finally:
-            bar.close()
-            writer.close()
+            try:
+                writer.close()
+            finally:
+                bar.close()
         elapsed = time.perf_counter() - start
         summary["seconds"] = round(elapsed, 3)
         summary["views_per_second"] = round(summary["views_rendered"] / elapsed, 3) if elapsed > 0 else None
@@ -229,7 +278,7 @@ def render_dataset(config: DatasetConfig, out: str | Path, shard: tuple[int, int
 
 
 def _render_shape(config: DatasetConfig, out: Path, index: int, item: SourceItem, views: Iterable[int],
-                  writer: _ManifestWriter, versions: dict[str, str], bar: Any) -> int:
+                  writer: _BackgroundWriter, versions: dict[str, str], bar: Any) -> int:
     content = item.load()
     cameras = view_cameras(config, index)
     gbuffer = GBufferRenderer(content.shapes, content.bounds, cameras[0], config.channels)
@@ -243,8 +292,7 @@ def _render_shape(config: DatasetConfig, out: Path, index: int, item: SourceItem
         stem = f"{item.id}/{view:03d}"
         maps = gbuffer.render(camera)
         files = {"maps": f"maps/{stem}.exr"}
-        write_exr(out / files["maps"], maps, config.compression,
-                  metadata={"ngp_mi.shape_id": item.id, "ngp_mi.view": str(view)})
+        image = None
         if config.real_spp:
             if real_scene is None or config.lights == "random":
                 emitters = content.emitters if config.lights == "scene" else lights_to_mitsuba(lights)
@@ -254,16 +302,22 @@ def _render_shape(config: DatasetConfig, out: Path, index: int, item: SourceItem
             image = render(real_scene, seed=derived_seed(config.seed, index, view))[..., :3]
             files["real"] = f"real/{stem}.exr"
             files["real_png"] = f"real/{stem}.png"
-            write_exr(out / files["real"], {"rgb": image}, config.compression)
-            save_png(out / files["real_png"], to_uint8(image))
-        writer.append({
+
+        def write(maps=maps, image=image, files=files, view=view) -> None:
+            write_exr(out / files["maps"], maps, config.compression,
+                      metadata={"ngp_mi.shape_id": item.id, "ngp_mi.view": str(view)},
+                      half=[c for c in maps if c != "depth"] if config.half else ())
+            if image is not None:
+                write_exr(out / files["real"], {"rgb": image}, config.compression)
+                save_png(out / files["real_png"], to_uint8(image))
+
+        writer.submit(write, {
             "shape_id": item.id, "source": item.kind, "origin": item.origin, "shape_index": index, "view": view,
             "theta_deg": camera.theta_deg, "phi_deg": camera.phi_deg, "K": camera.K.tolist(), "E": camera.E.tolist(),
             "width": camera.width, "height": camera.height, "channels": list(config.channels),
             "lights": [l.to_dict() for l in lights] if config.lights != "scene" else "scene",
             "seed": config.seed, "real_spp": config.real_spp, "files": files, "bounds": content.bounds.tolist(),
             "shape": content.meta, "versions": versions,
-        })
-        bar.update(1)
+        }, lambda: bar.update(1))
         count += 1
     return count

@@ -59,20 +59,29 @@ class GBufferRenderer:
             width = _AOVS[name][1]
             maps[name] = image[..., offset] if width == 1 else image[..., offset:offset + width]
             offset += width
-        hit = maps["depth"] > 0
-        rays = camera.pixel_rays()  # camera-space directions with z = 1
+        hit = (maps["depth"] > 0).astype(np.float32)
+        rays, inv_length = self._rays(camera)
         out: dict[str, np.ndarray] = {}
         if "depth" in self.channels:
-            out["depth"] = np.where(hit, maps["depth"] / np.linalg.norm(rays, axis=-1) + _NEAR_CLIP, 0.0)
+            out["depth"] = (maps["depth"] * inv_length + _NEAR_CLIP) * hit
         if "normal" in self.channels:
-            n = maps["normal"] @ camera.R.T  # world -> camera
-            n = np.where((np.sum(n * rays, axis=-1) > 0)[..., None], -n, n)  # face the camera
-            out["normal"] = np.where(hit[..., None], n, 0.0)
+            n = maps["normal"] @ camera.R.T.astype(np.float32)  # world -> camera
+            facing = np.where(np.einsum("hwc,hwc->hw", n, rays) > 0, -hit, hit)  # face the camera; 0 off the object
+            out["normal"] = n * facing[..., None]
         if "albedo" in self.channels:
-            out["albedo"] = np.where(hit[..., None], maps["albedo"], 0.0)
+            out["albedo"] = maps["albedo"] * hit[..., None]
         if "noc" in self.channels:
-            lo, hi = self.bounds
-            out["noc"] = np.where(hit[..., None], (maps["noc"] - lo) / np.maximum(hi - lo, 1e-12), 0.0)
+            lo, hi = self.bounds.astype(np.float32)
+            out["noc"] = (maps["noc"] - lo) * (1.0 / np.maximum(hi - lo, 1e-12)) * hit[..., None]
         if "mask" in self.channels:
-            out["mask"] = hit.astype(np.float32)
-        return {name: out[name].astype(np.float32) for name in self.channels}
+            out["mask"] = hit
+        return {name: np.ascontiguousarray(out[name], dtype=np.float32) for name in self.channels}
+
+    def _rays(self, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel-centre rays (z = 1) and 1 / their length, cached per intrinsics."""
+        key = (camera.focal_px, camera.cx, camera.cy, camera.width, camera.height)
+        if getattr(self, "_ray_key", None) != key:
+            rays = camera.pixel_rays().astype(np.float32)
+            self._ray_cache = (rays, 1.0 / np.linalg.norm(rays, axis=-1))
+            self._ray_key = key
+        return self._ray_cache
