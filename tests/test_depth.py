@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-import trimesh
-
+from helpers import trimesh_depth
 from ngp_mi import backend
 from ngp_mi.camera import Camera
 from ngp_mi.geometry.primitives import box, simple_chair
@@ -37,14 +36,7 @@ def test_depth_agrees_with_trimesh_ray_casting():
     mesh = simple_chair()
     cam = Camera.orbit(17.0, -35.0, 40)
     out = project_depth(torch.tensor(mesh.vertices), mesh.faces, cam)
-    rays = cam.pixel_rays().reshape(-1, 3)
-    directions = (rays / np.linalg.norm(rays, axis=1, keepdims=True)) @ cam.R  # camera -> world
-    origins = np.broadcast_to(cam.position, directions.shape)
-    tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
-    locations, index_ray, _ = tm.ray.intersects_location(origins, directions, multiple_hits=False)
-    z_ref = np.zeros(len(rays))
-    z_ref[index_ray] = cam.world_to_camera(locations)[:, 2]
-    z_ref = z_ref.reshape(40, 40)
+    z_ref = trimesh_depth(mesh, cam)
     ours = out.depth[0, 0].numpy()
     both = (z_ref > 0) & (ours > 0)
     assert both.sum() > 200

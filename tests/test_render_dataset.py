@@ -146,3 +146,14 @@ def test_scene_file_source_with_its_own_lights(tmp_path):
     assert maps["mask"].sum() > 20
     np.testing.assert_allclose(maps["albedo"][maps["mask"] > 0], [[0.6, 0.3, 0.2]] * int(maps["mask"].sum()), atol=1e-6)
     assert read_exr(tmp_path / "out" / record["files"]["real"])["rgb"].max() > 0
+
+
+def test_the_shipped_scene_files_render(tmp_path):
+    from pathlib import Path
+
+    scenes = Path(__file__).resolve().parent.parent / "scenes"
+    config = DatasetConfig(source=str(scenes), num_shapes=10, views=1, resolution=24, real_spp=4, lights="scene")
+    summary = render_dataset(config, tmp_path, progress=False)
+    assert summary["views_rendered"] >= 1 and not summary["skipped_shapes"]
+    for record in load_manifest(tmp_path):
+        assert read_exr(tmp_path / record["files"]["maps"])["mask"].sum() > 10

@@ -165,18 +165,23 @@ class _ManifestWriter:
 
 
 class _BackgroundWriter:
-    """Writes each view's files and then its manifest line, in order, on one thread.
+    """Writes each view's files and then its manifest line on ``threads`` threads.
 
-    EXR compression releases the GIL for part of its work, so it overlaps the next view's
-    rendering. A failed write (disk full, permissions) stops the job at the next submit.
+    EXR compression releases the GIL for part of its work, so writes overlap each other and the
+    next view's rendering. A view's line follows its own files; lines of different views may come
+    in any order (readers sort). A failed write (disk full, permissions) stops the job at the
+    next submit.
     """
 
-    def __init__(self, manifest: _ManifestWriter, depth: int = 8):
+    def __init__(self, manifest: _ManifestWriter, threads: int = 2, depth: int = 8):
         self.manifest = manifest
         self.jobs: queue.Queue = queue.Queue(maxsize=depth)
         self.error: BaseException | None = None
-        self.thread = threading.Thread(target=self._run, name="render-dataset-writer", daemon=True)
-        self.thread.start()
+        self.lock = threading.Lock()
+        self.threads = [threading.Thread(target=self._run, name=f"render-dataset-writer-{i}", daemon=True)
+                        for i in range(threads)]
+        for thread in self.threads:
+            thread.start()
 
     def submit(self, write: Callable[[], None], record: dict[str, Any], done: Callable[[], None]) -> None:
         if self.error is not None:
@@ -189,14 +194,17 @@ class _BackgroundWriter:
             if self.error is None:
                 try:
                     write()
-                    self.manifest.append(record)
-                    done()
+                    with self.lock:
+                        self.manifest.append(record)
+                        done()
                 except BaseException as exc:  # reported to the main thread
                     self.error = exc
 
     def close(self) -> None:
-        self.jobs.put(None)
-        self.thread.join()
+        for _ in self.threads:
+            self.jobs.put(None)
+        for thread in self.threads:
+            thread.join()
         self.manifest.close()
         if self.error is not None:
             raise self.error

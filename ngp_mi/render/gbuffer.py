@@ -51,37 +51,51 @@ class GBufferRenderer:
         self.resolution = (camera.width, camera.height)
 
     def render(self, camera: Camera) -> dict[str, np.ndarray]:
-        """The requested maps for ``camera``: (H, W) for depth and mask, (H, W, 3) for the others."""
-        set_sensor_camera(self.scene.sensors()[0], camera)
-        image = render(self.scene)
-        maps, offset = {}, 0
-        for name in self._aovs:
-            width = _AOVS[name][1]
-            maps[name] = image[..., offset] if width == 1 else image[..., offset:offset + width]
-            offset += width
-        hit = (maps["depth"] > 0).astype(np.float32)
-        rays, inv_length = self._rays(camera)
-        out: dict[str, np.ndarray] = {}
-        if "depth" in self.channels:
-            out["depth"] = (maps["depth"] * inv_length + _NEAR_CLIP) * hit
-        if "normal" in self.channels:
-            n = maps["normal"] @ camera.R.T.astype(np.float32)  # world -> camera
-            facing = np.where(np.einsum("hwc,hwc->hw", n, rays) > 0, -hit, hit)  # face the camera; 0 off the object
-            out["normal"] = n * facing[..., None]
-        if "albedo" in self.channels:
-            out["albedo"] = maps["albedo"] * hit[..., None]
-        if "noc" in self.channels:
-            lo, hi = self.bounds.astype(np.float32)
-            out["noc"] = (maps["noc"] - lo) * (1.0 / np.maximum(hi - lo, 1e-12)) * hit[..., None]
-        if "mask" in self.channels:
-            out["mask"] = hit
-        return {name: np.ascontiguousarray(out[name], dtype=np.float32) for name in self.channels}
+        """The requested maps for ``camera``: (H, W) for depth and mask, (H, W, 3) for the others.
 
-    def _rays(self, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-        """Pixel-centre rays (z = 1) and 1 / their length, cached per intrinsics."""
-        key = (camera.focal_px, camera.cx, camera.cy, camera.width, camera.height)
-        if getattr(self, "_ray_key", None) != key:
-            rays = camera.pixel_rays().astype(np.float32)
-            self._ray_cache = (rays, 1.0 / np.linalg.norm(rays, axis=-1))
-            self._ray_key = key
-        return self._ray_cache
+        The AOV image is converted in one Dr.Jit kernel: ray length → z-depth, world → camera
+        normals (flipped to face the camera), positions → NOC, background → 0. The camera enters
+        as a small array, not as literals, so a new view reuses the compiled kernel.
+        """
+        mi, dr = backend.mitsuba(), backend.drjit()
+        set_sensor_camera(self.scene.sensors()[0], camera)
+        image = mi.render(self.scene)
+        h, w, stride = image.shape
+        flat = image.array
+        lo, hi = self.bounds
+        params = mi.Float(np.concatenate([camera.R.ravel(), [camera.focal_px, camera.cx, camera.cy],
+                                          lo, 1.0 / np.maximum(hi - lo, 1e-12)]).astype(np.float32))
+        p = [dr.gather(mi.Float, params, k) for k in range(18)]
+        idx = dr.arange(mi.UInt32, h * w)
+        ray = mi.Vector3f((mi.Float(idx % w) + 0.5 - p[10]) / p[9], (mi.Float(idx // w) + 0.5 - p[11]) / p[9], 1.0)
+
+        def aov(name: str) -> Any:
+            offset = sum(_AOVS[n][1] for n in self._aovs[: self._aovs.index(name)])
+            values = [dr.gather(mi.Float, flat, idx * stride + offset + k) for k in range(_AOVS[name][1])]
+            return values[0] if len(values) == 1 else mi.Vector3f(*values)
+
+        length = aov("depth")
+        hit = length > 0
+        out: dict[str, Any] = {}
+        if "depth" in self.channels:
+            out["depth"] = dr.select(hit, length * dr.rsqrt(dr.squared_norm(ray)) + _NEAR_CLIP, 0.0)
+        if "normal" in self.channels:
+            n = mi.Matrix3f(*p[:9]) @ aov("normal")  # world -> camera
+            n = dr.select(dr.dot(n, ray) > 0, -n, n)  # face the camera
+            out["normal"] = dr.select(hit, n, 0.0)
+        if "albedo" in self.channels:
+            out["albedo"] = dr.select(hit, aov("albedo"), 0.0)
+        if "noc" in self.channels:
+            noc = (aov("noc") - mi.Vector3f(*p[12:15])) * mi.Vector3f(*p[15:18])
+            out["noc"] = dr.select(hit, noc, 0.0)
+        if "mask" in self.channels:
+            out["mask"] = dr.select(hit, mi.Float(1.0), 0.0)
+        dr.eval(*out.values())
+        maps = {}
+        for name in self.channels:
+            value = out[name]
+            if dr.depth_v(value) > 1:
+                maps[name] = np.stack([value[k].numpy() for k in range(3)], axis=-1).reshape(h, w, 3)
+            else:
+                maps[name] = value.numpy().reshape(h, w)
+        return maps
