@@ -48,6 +48,17 @@ def _render_dataset(args: argparse.Namespace) -> int:
     return 0
 
 
+def _compare(args: argparse.Namespace) -> int:
+    from ngp_mi.eval.compare import CompareConfig, run_compare
+
+    config = CompareConfig(source=args.source, num_shapes=args.num_shapes, views=args.views, resolution=args.res,
+                           light_setups=tuple(args.lights.split(",")),
+                           spp_ladder=tuple(int(x) for x in args.spp_ladder.split(",")),
+                           reference_spp=args.reference_spp, seed=args.seed)
+    run_compare(config, args.out)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="ngp-mi", description="Neural Graphics Pipeline on Mitsuba 3 / Dr.Jit and PyTorch.")
@@ -102,6 +113,21 @@ def build_parser() -> argparse.ArgumentParser:
     data.add_argument("--strict", action="store_true", help="exit non-zero if any shape was skipped")
     data.add_argument("--quiet", action="store_true", help="no progress bar")
     data.set_defaults(func=_render_dataset)
+
+    compare = sub.add_parser("compare", help="time and score deferred shading against path-traced references",
+                             description="Render, time and score path tracing at a ladder of spp and R_diff / R_BP "
+                                         "on ground-truth maps against a high-spp path-traced reference; write "
+                                         "images, a speed-accuracy plot, results.json and report.html.")
+    compare.add_argument("--source", default="chair", help="chair | car | mesh folder / file | scene .xml")
+    compare.add_argument("--out", required=True, help="output folder")
+    compare.add_argument("--num-shapes", type=int, default=3, help="shapes (default: %(default)s)")
+    compare.add_argument("--views", type=int, default=2, help="views per shape (default: %(default)s)")
+    compare.add_argument("--res", type=int, default=128, help="image size (default: %(default)s)")
+    compare.add_argument("--lights", default="rig,random", help="light setups, from rig,random (default: %(default)s)")
+    compare.add_argument("--spp-ladder", default="1,4,16,64,256", help="path-tracing spp to compare (default: %(default)s)")
+    compare.add_argument("--reference-spp", type=int, default=1024, help="spp of the reference (default: %(default)s)")
+    compare.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
+    compare.set_defaults(func=_compare)
     return parser
 
 

@@ -1,0 +1,1 @@
+"""Evaluation: image metrics, distribution distances, and method comparisons with reports."""

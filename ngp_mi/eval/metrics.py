@@ -1,0 +1,81 @@
+"""Image metrics (PSNR, SSIM, FLIP), full-frame or masked, and distribution distances (FID, KID).
+
+Images are float (H, W, 3). "Linear" metrics take linear radiance; "sRGB" metrics take display
+images in [0, 1] (apply ``viz.linear_to_srgb`` first). Masked variants average only over the
+object (mask > 0.5). SSIM is scikit-image's (Gaussian window σ = 1.5, as in Wang et al.); FLIP is
+NVIDIA's reference implementation (``flip-evaluator``, LDR mode on sRGB images, 67 pixels per
+degree).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import linalg
+
+
+def _select(error: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+    if mask is None:
+        return error
+    keep = np.asarray(mask) > 0.5
+    if not keep.any():
+        raise ValueError("metric over an empty mask")
+    return error[keep]
+
+
+def psnr(reference: np.ndarray, test: np.ndarray, mask: np.ndarray | None = None, peak: float = 1.0) -> float:
+    """Peak signal-to-noise ratio in dB, ``10 log10(peak² / MSE)``; inf for identical images."""
+    mse = float(np.mean(_select((np.asarray(test, np.float64) - reference) ** 2, mask)))
+    return float("inf") if mse == 0 else 10.0 * np.log10(peak ** 2 / mse)
+
+
+def ssim(reference: np.ndarray, test: np.ndarray, mask: np.ndarray | None = None, data_range: float = 1.0) -> float:
+    """Mean structural similarity (colour channels averaged), over the mask when given."""
+    from skimage.metrics import structural_similarity
+
+    _, ssim_map = structural_similarity(np.asarray(reference, np.float64), np.asarray(test, np.float64),
+                                        channel_axis=-1, data_range=data_range, gaussian_weights=True,
+                                        sigma=1.5, use_sample_covariance=False, full=True)
+    return float(np.mean(_select(ssim_map.mean(-1), mask)))
+
+
+def flip(reference_srgb: np.ndarray, test_srgb: np.ndarray, mask: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+    """Mean FLIP error (0 = identical, 1 = maximal) of display images, and the (H, W) error map."""
+    import flip_evaluator
+
+    error_map, _, _ = flip_evaluator.evaluate(np.clip(reference_srgb, 0, 1).astype(np.float32),
+                                              np.clip(test_srgb, 0, 1).astype(np.float32), "LDR",
+                                              inputsRGB=True, applyMagma=False, computeMeanError=False)
+    error_map = np.asarray(error_map).reshape(reference_srgb.shape[:2])
+    return float(np.mean(_select(error_map, mask))), error_map
+
+
+def frechet_distance(mu1: np.ndarray, sigma1: np.ndarray, mu2: np.ndarray, sigma2: np.ndarray) -> float:
+    """Fréchet distance of two Gaussians, ``|μ1 − μ2|² + tr(Σ1 + Σ2 − 2 (Σ1 Σ2)^½)`` (FID's formula).
+
+    The matrix square root is scipy's; a tiny diagonal offset is added when the product is singular.
+    """
+    mu1, mu2 = np.atleast_1d(mu1).astype(np.float64), np.atleast_1d(mu2).astype(np.float64)
+    sigma1, sigma2 = np.atleast_2d(sigma1).astype(np.float64), np.atleast_2d(sigma2).astype(np.float64)
+    covmean = linalg.sqrtm(sigma1 @ sigma2)
+    if not np.all(np.isfinite(covmean)):
+        offset = np.eye(len(sigma1)) * 1e-6
+        covmean = linalg.sqrtm((sigma1 + offset) @ (sigma2 + offset))
+    covmean = np.real(covmean)
+    diff = mu1 - mu2
+    return float(diff @ diff + np.trace(sigma1) + np.trace(sigma2) - 2.0 * np.trace(covmean))
+
+
+def fid_from_features(features1: np.ndarray, features2: np.ndarray) -> float:
+    """FID between two (N, D) feature sets (Inception pool3 features in practice)."""
+    return frechet_distance(features1.mean(0), np.cov(features1, rowvar=False),
+                            features2.mean(0), np.cov(features2, rowvar=False))
+
+
+def kernel_inception_distance(features1: np.ndarray, features2: np.ndarray) -> float:
+    """KID: unbiased MMD² with the cubic polynomial kernel ``(x·y / d + 1)³`` (Bińkowski et al.)."""
+    x, y = np.asarray(features1, np.float64), np.asarray(features2, np.float64)
+    d = x.shape[1]
+    kxx, kyy, kxy = ((x @ x.T) / d + 1) ** 3, ((y @ y.T) / d + 1) ** 3, ((x @ y.T) / d + 1) ** 3
+    m, n = len(x), len(y)
+    return float((kxx.sum() - np.trace(kxx)) / (m * (m - 1)) + (kyy.sum() - np.trace(kyy)) / (n * (n - 1))
+                 - 2 * kxy.mean())

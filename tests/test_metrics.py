@@ -1,0 +1,58 @@
+import numpy as np
+import pytest
+
+from ngp_mi.eval.metrics import (fid_from_features, flip, frechet_distance, kernel_inception_distance, psnr,
+                                 ssim)
+
+
+def test_psnr_known_values_and_mask():
+    ref = np.zeros((8, 8, 3))
+    test = ref.copy()
+    test[:4] = 0.1  # MSE over all = 0.005, over the top half = 0.01
+    assert psnr(ref, test) == pytest.approx(10 * np.log10(1 / 0.005))
+    mask = np.zeros((8, 8))
+    mask[:4] = 1
+    assert psnr(ref, test, mask) == pytest.approx(20.0)
+    assert psnr(ref, ref) == float("inf")
+    with pytest.raises(ValueError, match="empty mask"):
+        psnr(ref, test, np.zeros((8, 8)))
+
+
+def test_ssim_and_flip_order_images_by_degradation():
+    rng = np.random.default_rng(0)
+    ref = np.clip(rng.uniform(0, 1, (32, 32, 3)), 0, 1)
+    slightly, badly = np.clip(ref + rng.normal(0, 0.02, ref.shape), 0, 1), np.clip(ref + rng.normal(0, 0.2, ref.shape), 0, 1)
+    assert ssim(ref, ref) == pytest.approx(1.0)
+    assert 1.0 > ssim(ref, slightly) > ssim(ref, badly)
+    f_same, _ = flip(ref, ref)
+    f_slight, error_map = flip(ref, slightly)
+    f_bad, _ = flip(ref, badly)
+    assert f_same == pytest.approx(0.0, abs=1e-6) and 0 < f_slight < f_bad < 1
+    assert error_map.shape == (32, 32)
+
+
+def test_frechet_distance_against_closed_forms():
+    # 1-D Gaussians: (m1 - m2)^2 + (s1 - s2)^2.
+    assert frechet_distance(np.array([1.0]), np.array([[4.0]]), np.array([3.0]), np.array([[1.0]])) == pytest.approx(
+        (1 - 3) ** 2 + (2 - 1) ** 2)
+    # Diagonal covariances: sum over dimensions of the 1-D formula.
+    rng = np.random.default_rng(1)
+    m1, m2 = rng.normal(size=5), rng.normal(size=5)
+    s1, s2 = rng.uniform(0.5, 2, 5), rng.uniform(0.5, 2, 5)
+    expected = np.sum((m1 - m2) ** 2 + (s1 - s2) ** 2)
+    assert frechet_distance(m1, np.diag(s1 ** 2), m2, np.diag(s2 ** 2)) == pytest.approx(expected)
+    # Commuting full covariances (same eigenvectors): an independent computation via eigenvalues.
+    q, _ = np.linalg.qr(rng.normal(size=(4, 4)))
+    a, b = rng.uniform(0.2, 3, 4), rng.uniform(0.2, 3, 4)
+    sig1, sig2 = q @ np.diag(a) @ q.T, q @ np.diag(b) @ q.T
+    expected = np.sum((np.sqrt(a) - np.sqrt(b)) ** 2)
+    assert frechet_distance(np.zeros(4), sig1, np.zeros(4), sig2) == pytest.approx(expected, rel=1e-8)
+
+
+def test_fid_and_kid_from_features():
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=(400, 8))
+    same = rng.normal(size=(400, 8))
+    shifted = rng.normal(size=(400, 8)) + 1.0
+    assert fid_from_features(x, same) < 0.3 < fid_from_features(x, shifted)
+    assert abs(kernel_inception_distance(x, same)) < 0.05 < kernel_inception_distance(x, shifted)
