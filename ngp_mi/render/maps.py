@@ -37,14 +37,25 @@ def backproject(depth: torch.Tensor, cameras: Camera | Sequence[Camera]) -> torc
 def noc_from_depth(depth: torch.Tensor, mask: torch.Tensor, cameras: Camera | Sequence[Camera],
                    bounds: np.ndarray | torch.Tensor) -> torch.Tensor:
     """NOC(d, K, E): world points ``Rᵀ (x_cam − t)`` mapped by ``bounds`` (2, 3) to [0, 1]³, 0 off the mask."""
-    n = depth.shape[0]
-    cams = _per_view(cameras, n)
-    points = backproject(depth, cams)
-    R = torch.stack([torch.as_tensor(c.R, dtype=depth.dtype, device=depth.device) for c in cams])
-    t = torch.stack([torch.as_tensor(c.t, dtype=depth.dtype, device=depth.device) for c in cams])
-    world = torch.einsum("nji,njhw->nihw", R, points - t[:, :, None, None])
+    cams = _per_view(cameras, depth.shape[0])
+    as_tensor = lambda a: torch.as_tensor(np.stack(a), dtype=depth.dtype, device=depth.device)  # noqa: E731
     bounds = torch.as_tensor(bounds, dtype=depth.dtype, device=depth.device)
-    lo, hi = bounds[0].reshape(1, 3, 1, 1), bounds[1].reshape(1, 3, 1, 1)
+    return noc_from_depth_batch(depth, mask, as_tensor([c.K for c in cams]), as_tensor([c.E for c in cams]),
+                                bounds.expand(depth.shape[0], 2, 3))
+
+
+def noc_from_depth_batch(depth: torch.Tensor, mask: torch.Tensor, K: torch.Tensor, E: torch.Tensor,
+                         bounds: torch.Tensor) -> torch.Tensor:
+    """:func:`noc_from_depth` with per-sample tensors: K (N, 3, 3), E (N, 3, 4), bounds (N, 2, 3)."""
+    n, _, h, w = depth.shape
+    v, u = torch.meshgrid(torch.arange(h, dtype=depth.dtype, device=depth.device) + 0.5,
+                          torch.arange(w, dtype=depth.dtype, device=depth.device) + 0.5, indexing="ij")
+    f, cx, cy = K[:, 0, 0].reshape(n, 1, 1), K[:, 0, 2].reshape(n, 1, 1), K[:, 1, 2].reshape(n, 1, 1)
+    rays = torch.stack([(u - cx) / f, (v - cy) / f, torch.ones_like(u).expand(n, h, w)], dim=1)
+    points = depth * rays
+    R, t = E[:, :, :3], E[:, :, 3]
+    world = torch.einsum("nji,njhw->nihw", R, points - t[:, :, None, None])
+    lo, hi = bounds[:, 0].reshape(n, 3, 1, 1), bounds[:, 1].reshape(n, 3, 1, 1)
     return (world - lo) / torch.clamp(hi - lo, min=1e-12) * (mask > 0)
 
 

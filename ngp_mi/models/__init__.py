@@ -1,0 +1,1 @@
+"""Trainable systems: each owns its networks, losses and optimisers."""

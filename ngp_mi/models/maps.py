@@ -1,0 +1,181 @@
+"""The reflectance-map generation system of NGP (paper Sec. 3.4, Fig. "architecture", App. B).
+
+Networks: G_n (depth → normals), G_da (NOC ⊕ normals, z_da → diffuse albedo), G_depth (diffuse
+image → depth), E_da (albedo → μ, log σ² of z_da), and the discriminators D_n, D_da (small, 34-pixel
+receptive field), D_df, D_depth, D_noc (mid and large: 70 and 142 pixels).
+
+Two cycles per step, on unpaired batches (paper Fig. "architecture"):
+
+* top — real depth d^r: N^g = G_n(d^r); I_da^g = G_da(NOC(d^r), N^g, z_da); I_df^g = R_diff(N^g, I_da^g, L);
+  back to depth through G_depth, and to z_da through E_da;
+* bottom — real maps (N^r, I_da^r): I_df^r = R_diff(N^r, I_da^r, L); d^g = G_depth(I_df^r); back to normals
+  through G_n, to albedo through G_da(NOC(d^g), N^r, E_da(I_da^r)), and to the diffuse image.
+
+R_diff is the project's differentiable Dr.Jit operator under the 4 overhead lights, in each view's
+camera space. Value ranges at the network boundary: depth ``(d − 2) / 0.6`` on the object and −1
+on the background (a generated depth's mask is ``M(d) = [net > −0.97]``, the paper's thresholding);
+albedo, NOC and diffuse images ``2x − 1``; normals as they are.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from ngp_mi.camera import Camera
+from ngp_mi.lights import overhead_rig
+from ngp_mi.models import losses
+from ngp_mi.nets.networks import define_D, define_E, define_G
+from ngp_mi.render.maps import noc_from_depth_batch
+from ngp_mi.render.shading import CameraLights, shade
+
+DEPTH_CENTER, DEPTH_SCALE, MASK_THRESHOLD = 2.0, 0.6, -0.97
+
+
+@dataclasses.dataclass(frozen=True)
+class MapsConfig:
+    ngf: int = 64
+    blocks: int = 9
+    nef: int = 64
+    ndf: int = 64
+    latent_dim: int = 8
+    lr: float = 1e-4
+    beta1: float = 0.5
+    k_d: float = 0.8  # chairs; 0.6 for cars (App. "Training details")
+    rf_maps: tuple[int, ...] = (70, 142)
+    rf_albedo: tuple[int, ...] = (34,)
+    lambdas: tuple[tuple[str, float], ...] = tuple(losses.LAMBDAS.items())
+
+
+def depth_to_net(depth: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    return torch.where(mask > 0, ((depth - DEPTH_CENTER) / DEPTH_SCALE).clamp(-0.95, 1.0), -torch.ones_like(depth))
+
+
+def net_to_depth(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(depth, mask) of a network depth map; the mask thresholds the depth (no gradient through it)."""
+    mask = (x > MASK_THRESHOLD).to(x.dtype)
+    return (DEPTH_CENTER + DEPTH_SCALE * x) * mask, mask
+
+
+def cameras_of(batch: dict[str, Any]) -> list[Camera]:
+    h, w = batch["depth"].shape[-2:]
+    return [Camera.from_K_E(K.numpy(), E.numpy(), w, h) for K, E in zip(batch["K"].cpu(), batch["E"].cpu())]
+
+
+class MapsModel(nn.Module):
+    """Owns the map networks, their optimisers and losses; :meth:`optimize` runs one training step."""
+
+    loss_names = ("gan_n", "gan_da", "gan_df", "gan_depth", "gan_noc", "cyc_n", "cyc_da", "cyc_df", "cyc_depth",
+                  "cyc_noc", "cyc_z", "kl", "G", "D")
+    visual_names = ("depth_r", "normal_g", "albedo_g", "diffuse_g", "depth_cycled", "diffuse_r", "depth_g",
+                    "normal_cycled", "albedo_cycled")
+
+    def __init__(self, config: MapsConfig = MapsConfig()):
+        super().__init__()
+        self.config = config
+        c = config
+        self.G_n = define_G(1, 3, c.ngf, c.blocks)
+        self.G_da = define_G(6, 3, c.ngf, c.blocks, latent_dim=c.latent_dim)
+        self.G_depth = define_G(3, 1, c.ngf, c.blocks)
+        self.E_da = define_E(3, c.latent_dim, c.nef)
+        self.D_n = define_D(3, c.rf_maps, c.ndf)
+        self.D_da = define_D(3, c.rf_albedo, c.ndf)
+        self.D_df = define_D(3, c.rf_maps, c.ndf)
+        self.D_depth = define_D(1, c.rf_maps, c.ndf)
+        self.D_noc = define_D(3, c.rf_maps, c.ndf)
+        generators = [self.G_n, self.G_da, self.G_depth, self.E_da]
+        self.discriminators = [self.D_n, self.D_da, self.D_df, self.D_depth, self.D_noc]
+        betas = (c.beta1, 0.999)
+        self.opt_G = torch.optim.Adam([p for m in generators for p in m.parameters()], lr=c.lr, betas=betas)
+        self.opt_D = torch.optim.Adam([p for m in self.discriminators for p in m.parameters()], lr=c.lr, betas=betas)
+        self.lights = overhead_rig()
+        self.visuals: dict[str, torch.Tensor] = {}
+
+    # ------------------------------------------------------------------ pieces
+    def render_diffuse(self, normal: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor,
+                       cameras: list[Camera]) -> torch.Tensor:
+        """R_diff under the training lights, each view in its own camera space."""
+        lights = CameraLights.from_lights(self.lights, cameras, dtype=normal.dtype, device=normal.device)
+        return shade(normal, albedo, mask, lights, cameras, k_d=self.config.k_d, mode="diffuse")
+
+    @staticmethod
+    def noc(depth: torch.Tensor, mask: torch.Tensor, batch: dict[str, Any]) -> torch.Tensor:
+        """NOC(d, K, E) as a network map (2x − 1, background −1)."""
+        noc = noc_from_depth_batch(depth, mask, batch["K"], batch["E"], batch["bounds"])
+        return torch.where(mask > 0, 2 * noc - 1, -torch.ones_like(noc))
+
+    # ------------------------------------------------------------------ one step
+    def forward(self, depth_batch: dict[str, Any], maps_batch: dict[str, Any]) -> dict[str, torch.Tensor]:
+        """Both cycles; returns the generator loss terms (and keeps the visuals)."""
+        cams_d, cams_m = cameras_of(depth_batch), cameras_of(maps_batch)
+        d_r, m_d = depth_batch["depth"], depth_batch["mask"]
+        d_r_net = depth_to_net(d_r, m_d)
+        noc_r = self.noc(d_r, m_d, depth_batch)
+        normal_g = self.G_n(d_r_net)
+        z = torch.randn(d_r.shape[0], self.config.latent_dim, device=d_r.device)
+        albedo_g_net = self.G_da(torch.cat([noc_r, normal_g], 1), z)
+        diffuse_g = self.render_diffuse(normal_g, (albedo_g_net + 1) / 2, m_d, cams_d)
+        diffuse_g_net = 2 * diffuse_g - 1
+        depth_cycled_net = self.G_depth(diffuse_g_net)
+        noc_cycled = self.noc(*net_to_depth(depth_cycled_net), depth_batch)
+        z_recovered, _ = self.E_da(albedo_g_net)
+
+        normal_r, albedo_r, m_m = maps_batch["normal"], maps_batch["albedo"], maps_batch["mask"]
+        albedo_r_net = 2 * albedo_r - 1
+        diffuse_r = self.render_diffuse(normal_r, albedo_r, m_m, cams_m).detach()
+        diffuse_r_net = 2 * diffuse_r - 1
+        depth_g_net = self.G_depth(diffuse_r_net)
+        noc_g = self.noc(*net_to_depth(depth_g_net), maps_batch)
+        normal_cycled = self.G_n(depth_g_net)
+        mu, logvar = self.E_da(albedo_r_net)
+        z_encoded = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
+        albedo_cycled_net = self.G_da(torch.cat([noc_g, normal_r], 1), z_encoded)
+        diffuse_cycled = self.render_diffuse(normal_cycled, (albedo_cycled_net + 1) / 2, m_m, cams_m)
+
+        self._for_d = {"normal": (normal_r, normal_g), "albedo": (albedo_r_net, albedo_g_net),
+                       "diffuse": (diffuse_r_net, diffuse_g_net),
+                       "depth": (depth_to_net(maps_batch["depth"], m_m), depth_g_net),
+                       "noc": (self.noc(maps_batch["depth"], m_m, maps_batch), noc_g)}
+        self.visuals = {"depth_r": d_r_net, "normal_g": normal_g, "albedo_g": albedo_g_net, "diffuse_g": diffuse_g_net,
+                        "depth_cycled": depth_cycled_net, "diffuse_r": diffuse_r_net, "depth_g": depth_g_net,
+                        "normal_cycled": normal_cycled, "albedo_cycled": albedo_cycled_net}
+        return {
+            "gan_n": losses.normal_gan_loss(self.D_n, normal_g),
+            "gan_da": losses.albedo_gan_loss(self.D_da, albedo_g_net),
+            "gan_df": losses.diffuse_gan_loss(self.D_df, diffuse_g_net),
+            "gan_depth": losses.depth_gan_loss(self.D_depth, depth_g_net),
+            "gan_noc": losses.noc_gan_loss(self.D_noc, noc_g),
+            "cyc_depth": losses.depth_cycle_loss(depth_cycled_net, d_r_net),
+            "cyc_noc": losses.noc_cycle_loss(noc_cycled, noc_r),
+            "cyc_n": losses.normal_cycle_loss(normal_cycled, normal_r),
+            "cyc_da": losses.albedo_cycle_loss(albedo_cycled_net, albedo_r_net),
+            "cyc_df": losses.diffuse_cycle_loss(2 * diffuse_cycled - 1, diffuse_r_net),
+            "cyc_z": losses.latent_cycle_loss(z_recovered, z),
+            "kl": losses.kl_loss(mu, logvar),
+        }
+
+    def discriminator_terms(self) -> torch.Tensor:
+        pairs = zip((self.D_n, self.D_da, self.D_df, self.D_depth, self.D_noc),
+                    ("normal", "albedo", "diffuse", "depth", "noc"))
+        return sum(losses.discriminator_loss(D, *self._for_d[name]) for D, name in pairs)
+
+    def optimize(self, depth_batch: dict[str, Any], maps_batch: dict[str, Any]) -> dict[str, float]:
+        """One step: generators and E_da on L_2D (discriminators frozen), then the discriminators."""
+        for D in self.discriminators:
+            D.requires_grad_(False)
+        terms = self(depth_batch, maps_batch)
+        loss_G = losses.total_2d_loss(terms, dict(self.config.lambdas))
+        self.opt_G.zero_grad(set_to_none=True)
+        loss_G.backward()
+        self.opt_G.step()
+        for D in self.discriminators:
+            D.requires_grad_(True)
+        loss_D = self.discriminator_terms()
+        self.opt_D.zero_grad(set_to_none=True)
+        loss_D.backward()
+        self.opt_D.step()
+        return {**{k: v.item() for k, v in terms.items()}, "G": loss_G.item(), "D": loss_D.item()}

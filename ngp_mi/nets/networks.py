@@ -1,0 +1,169 @@
+"""Network building blocks of NGP's map generation (paper Sec. 3.4, "Implementation details").
+
+* :class:`ResnetGenerator` — the CycleGAN / MUNIT ResNet encoder-decoder used for every map
+  generator (G_n, G_da, G_depth, G_sp^real), optionally conditioned on a latent code concatenated
+  to the input of every encoder layer (as VON / BicycleGAN do for G_da).
+* :class:`ResnetEncoder` — E_da: albedo map → (μ, log σ²) of the 8-d appearance code.
+* :class:`PatchDiscriminator` — PatchGAN with a receptive field of 16, 34, 70 or 142 pixels;
+  :class:`MultiPatchDiscriminator` combines several (the paper's "mid (70) and large (140)").
+* :func:`define_G`, :func:`define_E`, :func:`define_D` — constructors with CycleGAN's init.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+
+def _norm(channels: int) -> nn.Module:
+    return nn.InstanceNorm2d(channels, affine=False, track_running_stats=False)
+
+
+class ResnetBlock(nn.Module):
+    def __init__(self, channels: int):
+        super().__init__()
+        self.body = nn.Sequential(
+            nn.ReflectionPad2d(1), nn.Conv2d(channels, channels, 3), _norm(channels), nn.ReLU(True),
+            nn.ReflectionPad2d(1), nn.Conv2d(channels, channels, 3), _norm(channels))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.body(x)
+
+
+class ResnetGenerator(nn.Module):
+    """c7s1-ngf, two stride-2 downsamplings, ``blocks`` residual blocks, two upsamplings, c7s1-out, tanh.
+
+    With ``latent_dim > 0``, the latent code (broadcast over the image) is concatenated to the
+    input of each encoder layer (c7s1 and both downsamplings).
+    """
+
+    def __init__(self, in_channels: int, out_channels: int, ngf: int = 64, blocks: int = 9, latent_dim: int = 0):
+        super().__init__()
+        self.latent_dim = latent_dim
+        z = latent_dim
+        self.encoder = nn.ModuleList([
+            nn.Sequential(nn.ReflectionPad2d(3), nn.Conv2d(in_channels + z, ngf, 7), _norm(ngf), nn.ReLU(True)),
+            nn.Sequential(nn.Conv2d(ngf + z, 2 * ngf, 3, 2, 1), _norm(2 * ngf), nn.ReLU(True)),
+            nn.Sequential(nn.Conv2d(2 * ngf + z, 4 * ngf, 3, 2, 1), _norm(4 * ngf), nn.ReLU(True)),
+        ])
+        self.blocks = nn.Sequential(*[ResnetBlock(4 * ngf) for _ in range(blocks)])
+        self.decoder = nn.Sequential(
+            nn.ConvTranspose2d(4 * ngf, 2 * ngf, 3, 2, 1, output_padding=1), _norm(2 * ngf), nn.ReLU(True),
+            nn.ConvTranspose2d(2 * ngf, ngf, 3, 2, 1, output_padding=1), _norm(ngf), nn.ReLU(True),
+            nn.ReflectionPad2d(3), nn.Conv2d(ngf, out_channels, 7), nn.Tanh())
+
+    def forward(self, x: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
+        if (z is None) != (self.latent_dim == 0):
+            raise ValueError(f"generator expects a latent code of size {self.latent_dim}" if self.latent_dim
+                             else "generator takes no latent code")
+        for layer in self.encoder:
+            if z is not None:
+                x = torch.cat([x, z[:, :, None, None].expand(-1, -1, *x.shape[-2:])], dim=1)
+            x = layer(x)
+        return self.decoder(self.blocks(x))
+
+
+class ResnetEncoder(nn.Module):
+    """E_da: conv, ``levels`` residual downsampling blocks, average pooling, linear heads μ and log σ²."""
+
+    def __init__(self, in_channels: int, latent_dim: int = 8, nef: int = 64, levels: int = 4):
+        super().__init__()
+        layers: list[nn.Module] = [nn.Conv2d(in_channels, nef, 4, 2, 1)]
+        channels = nef
+        for level in range(1, levels):
+            out = nef * min(level + 1, 4)
+            layers.append(_BasicDownBlock(channels, out))
+            channels = out
+        layers += [nn.LeakyReLU(0.2, True), nn.AdaptiveAvgPool2d(1)]
+        self.features = nn.Sequential(*layers)
+        self.mu = nn.Linear(channels, latent_dim)
+        self.logvar = nn.Linear(channels, latent_dim)
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        h = self.features(x).flatten(1)
+        return self.mu(h), self.logvar(h)
+
+
+class _BasicDownBlock(nn.Module):
+    """BicycleGAN's residual block that halves the resolution."""
+
+    def __init__(self, cin: int, cout: int):
+        super().__init__()
+        self.body = nn.Sequential(_norm(cin), nn.LeakyReLU(0.2, True), nn.Conv2d(cin, cin, 3, 1, 1),
+                                  _norm(cin), nn.LeakyReLU(0.2, True), nn.Conv2d(cin, cout, 3, 1, 1), nn.AvgPool2d(2))
+        self.shortcut = nn.Sequential(nn.AvgPool2d(2), nn.Conv2d(cin, cout, 1))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.body(x) + self.shortcut(x)
+
+
+PATCH_LAYERS = {16: 1, 34: 2, 70: 3, 142: 4}  # receptive field (pixels) -> stride-2 layers
+
+
+def patch_receptive_field(n_layers: int) -> int:
+    """Receptive field of a PatchGAN with ``n_layers`` stride-2 4×4 convs and two stride-1 4×4 convs."""
+    strides = [2] * n_layers + [1, 1]
+    field = 1
+    for stride in reversed(strides):
+        field = (field - 1) * stride + 4
+    return field
+
+
+class PatchDiscriminator(nn.Module):
+    """PatchGAN (pix2pix's NLayerDiscriminator): one real/fake score per overlapping patch."""
+
+    def __init__(self, in_channels: int, receptive_field: int = 70, ndf: int = 64):
+        super().__init__()
+        if receptive_field not in PATCH_LAYERS:
+            raise ValueError(f"receptive field must be one of {sorted(PATCH_LAYERS)}, got {receptive_field}")
+        n_layers = PATCH_LAYERS[receptive_field]
+        layers: list[nn.Module] = [nn.Conv2d(in_channels, ndf, 4, 2, 1), nn.LeakyReLU(0.2, True)]
+        channels = ndf
+        for i in range(1, n_layers):
+            out = ndf * min(2 ** i, 8)
+            layers += [nn.Conv2d(channels, out, 4, 2, 1), _norm(out), nn.LeakyReLU(0.2, True)]
+            channels = out
+        out = ndf * min(2 ** n_layers, 8)
+        layers += [nn.Conv2d(channels, out, 4, 1, 1), _norm(out), nn.LeakyReLU(0.2, True), nn.Conv2d(out, 1, 4, 1, 1)]
+        self.model = nn.Sequential(*layers)
+        self.receptive_field = patch_receptive_field(n_layers)
+        self.min_size = 3 * 2 ** n_layers  # the last normalised layer needs more than one element
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if min(x.shape[-2:]) < self.min_size:
+            raise ValueError(f"a PatchGAN with a {self.receptive_field}-pixel receptive field needs images of at "
+                             f"least {self.min_size}x{self.min_size}, got {tuple(x.shape[-2:])}")
+        return self.model(x)
+
+
+class MultiPatchDiscriminator(nn.Module):
+    """Several PatchGANs on the same input; returns the list of their score maps."""
+
+    def __init__(self, in_channels: int, receptive_fields: tuple[int, ...] = (70, 142), ndf: int = 64):
+        super().__init__()
+        self.discriminators = nn.ModuleList([PatchDiscriminator(in_channels, rf, ndf) for rf in receptive_fields])
+
+    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        return [d(x) for d in self.discriminators]
+
+
+def init_weights(net: nn.Module, gain: float = 0.02) -> nn.Module:
+    """CycleGAN's initialisation: N(0, 0.02) convolution and linear weights, zero biases."""
+    for module in net.modules():
+        if isinstance(module, (nn.Conv2d, nn.ConvTranspose2d, nn.Linear)):
+            nn.init.normal_(module.weight, 0.0, gain)
+            if module.bias is not None:
+                nn.init.zeros_(module.bias)
+    return net
+
+
+def define_G(in_channels: int, out_channels: int, ngf: int = 64, blocks: int = 9, latent_dim: int = 0) -> ResnetGenerator:
+    return init_weights(ResnetGenerator(in_channels, out_channels, ngf, blocks, latent_dim))
+
+
+def define_E(in_channels: int, latent_dim: int = 8, nef: int = 64, levels: int = 4) -> ResnetEncoder:
+    return init_weights(ResnetEncoder(in_channels, latent_dim, nef, levels))
+
+
+def define_D(in_channels: int, receptive_fields: tuple[int, ...] = (70, 142), ndf: int = 64) -> MultiPatchDiscriminator:
+    return init_weights(MultiPatchDiscriminator(in_channels, receptive_fields, ndf))

@@ -1,0 +1,52 @@
+import pytest
+import torch
+
+from ngp_mi.nets.networks import PatchDiscriminator, define_D, define_E, define_G, patch_receptive_field
+
+
+def test_generator_shapes_and_latent_conditioning():
+    g = define_G(6, 3, ngf=8, blocks=2, latent_dim=8)
+    x, z = torch.randn(2, 6, 32, 32), torch.randn(2, 8)
+    y = g(x, z)
+    assert y.shape == (2, 3, 32, 32) and y.abs().max() <= 1
+    assert not torch.allclose(g(x, z), g(x, torch.randn(2, 8)))  # the code changes the output
+    with pytest.raises(ValueError, match="latent code"):
+        g(x)
+    with pytest.raises(ValueError, match="no latent"):
+        define_G(1, 3, ngf=8, blocks=1)(torch.randn(1, 1, 16, 16), torch.randn(1, 8))
+
+
+def test_encoder_outputs_mean_and_log_variance():
+    mu, logvar = define_E(3, latent_dim=8, nef=8)(torch.randn(3, 3, 64, 64))
+    assert mu.shape == logvar.shape == (3, 8)
+
+
+@pytest.mark.parametrize("field", [16, 34, 70, 142])
+def test_patchgan_receptive_field_is_what_it_says(field):
+    """The input region that influences one output score, measured by its gradient.
+
+    Instance normalisation couples every pixel through its statistics; the receptive field of a
+    PatchGAN is, by convention, that of its convolutions, so the norms are removed for the measurement.
+    """
+    assert PatchDiscriminator(3, field).receptive_field == field
+    d = PatchDiscriminator(1, field, ndf=4)
+    d.model = torch.nn.Sequential(*[m for m in d.model if not isinstance(m, torch.nn.InstanceNorm2d)])
+    for m in d.modules():  # positive weights: no accidental zero in the gradient's support
+        if isinstance(m, torch.nn.Conv2d):
+            torch.nn.init.uniform_(m.weight, 0.1, 0.2)
+    size = 2 * field + 32
+    x = torch.zeros(1, 1, size, size, requires_grad=True)
+    out = d.model(x)
+    c = out.shape[-1] // 2
+    out[0, 0, c, c].backward()
+    rows = torch.nonzero(x.grad[0, 0].abs().sum(1)).flatten()
+    assert rows.max() - rows.min() + 1 == field
+    assert patch_receptive_field(3) == 70
+
+
+def test_multi_discriminator_and_size_check():
+    d = define_D(3, (34, 70), ndf=8)
+    scores = d(torch.randn(2, 3, 64, 64))
+    assert len(scores) == 2 and scores[0].shape[-1] > scores[1].shape[-1]
+    with pytest.raises(ValueError, match="at least 48x48"):
+        define_D(3, (142,), ndf=8)(torch.randn(1, 3, 32, 32))
