@@ -59,6 +59,14 @@ def _compare(args: argparse.Namespace) -> int:
     return 0
 
 
+def _train(args: argparse.Namespace) -> int:
+    from ngp_mi.train_maps import train_maps
+
+    out = train_maps(args.config)
+    print(f"train {args.stage}: outputs in {out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="ngp-mi", description="Neural Graphics Pipeline on Mitsuba 3 / Dr.Jit and PyTorch.")
@@ -128,6 +136,13 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument("--reference-spp", type=int, default=1024, help="spp of the reference (default: %(default)s)")
     compare.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
     compare.set_defaults(func=_compare)
+
+    train = sub.add_parser("train", help="train a stage of NGP from a config (train/*.toml); resumes automatically",
+                           description="Train the map networks (stage 'maps') from a TOML config; logs, image grids "
+                                       "and checkpoints go to the config's [train].out. Multi-process with torchrun.")
+    train.add_argument("stage", choices=["maps"], help="what to train")
+    train.add_argument("--config", required=True, help="TOML config, e.g. train/maps_tiny.toml")
+    train.set_defaults(func=_train)
     return parser
 
 

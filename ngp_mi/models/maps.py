@@ -20,7 +20,7 @@ albedo, NOC and diffuse images ``2x − 1``; normals as they are.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -94,6 +94,16 @@ class MapsModel(nn.Module):
         self.opt_D = torch.optim.Adam([p for m in self.discriminators for p in m.parameters()], lr=c.lr, betas=betas)
         self.lights = overhead_rig()
         self.visuals: dict[str, torch.Tensor] = {}
+        # Called with each optimiser's parameters between backward and step (multi-process training
+        # averages gradients there).
+        self.gradient_hook: Callable[[list[torch.Tensor]], None] | None = None
+
+    def _step(self, optimizer: torch.optim.Optimizer, loss: torch.Tensor) -> None:
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if self.gradient_hook is not None:
+            self.gradient_hook([p for group in optimizer.param_groups for p in group["params"]])
+        optimizer.step()
 
     # ------------------------------------------------------------------ pieces
     def render_diffuse(self, normal: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor,
@@ -169,13 +179,9 @@ class MapsModel(nn.Module):
             D.requires_grad_(False)
         terms = self(depth_batch, maps_batch)
         loss_G = losses.total_2d_loss(terms, dict(self.config.lambdas))
-        self.opt_G.zero_grad(set_to_none=True)
-        loss_G.backward()
-        self.opt_G.step()
+        self._step(self.opt_G, loss_G)
         for D in self.discriminators:
             D.requires_grad_(True)
         loss_D = self.discriminator_terms()
-        self.opt_D.zero_grad(set_to_none=True)
-        loss_D.backward()
-        self.opt_D.step()
+        self._step(self.opt_D, loss_D)
         return {**{k: v.item() for k, v in terms.items()}, "G": loss_G.item(), "D": loss_D.item()}

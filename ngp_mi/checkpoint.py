@@ -1,0 +1,64 @@
+"""Checkpoints that load without executing code, written atomically.
+
+A checkpoint is a folder ``ckpt-<step:08d>/`` holding ``weights.safetensors`` (every module's
+parameters and buffers, prefixed by the module's name) and ``state.pt`` (optimiser states and
+plain values, read back with ``torch.load(weights_only=True)``). It is written under a temporary
+name and renamed, so a job killed mid-write leaves either the previous checkpoint or the new one.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors.torch import load_file, save_file
+
+
+def save_checkpoint(root: str | Path, step: int, modules: dict[str, torch.nn.Module], state: dict[str, Any],
+                    keep: int = 3) -> Path:
+    """Write ``root/ckpt-<step>``; keep the newest ``keep`` checkpoints."""
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".ckpt-", dir=root))
+    try:
+        tensors = {f"{name}.{key}": value.detach().contiguous().cpu()
+                   for name, module in modules.items() for key, value in module.state_dict().items()}
+        save_file(tensors, tmp / "weights.safetensors")
+        torch.save({**state, "step": step}, tmp / "state.pt")
+        final = root / f"ckpt-{step:08d}"
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+    for old in list_checkpoints(root)[:-keep]:
+        shutil.rmtree(old)
+    return final
+
+
+def list_checkpoints(root: str | Path) -> list[Path]:
+    """Complete checkpoints under ``root``, oldest first."""
+    root = Path(root)
+    return sorted(p for p in root.glob("ckpt-*") if (p / "state.pt").exists() and (p / "weights.safetensors").exists())
+
+
+def load_checkpoint(path: str | Path, modules: dict[str, torch.nn.Module]) -> dict[str, Any]:
+    """Load weights into ``modules`` (strictly: every key must match) and return the state dict."""
+    path = Path(path)
+    tensors = load_file(path / "weights.safetensors")
+    for name, module in modules.items():
+        prefix = f"{name}."
+        own = {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
+        try:
+            missing, unexpected = module.load_state_dict(own, strict=False)
+        except RuntimeError as exc:  # shape mismatches
+            raise ValueError(f"{path}: checkpoint does not fit module {name!r} ({str(exc).splitlines()[-1].strip()})") from None
+        if missing or unexpected:
+            raise ValueError(f"{path}: checkpoint does not fit module {name!r} "
+                             f"(missing {list(missing)[:3]}, unexpected {list(unexpected)[:3]})")
+    return torch.load(path / "state.pt", weights_only=True)

@@ -1,0 +1,75 @@
+"""ngp-mi train maps: outputs, exact resume, checkpoint robustness, and 2-process training (gloo)."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from ngp_mi.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint
+from ngp_mi.train_maps import train_maps
+
+TINY = Path(__file__).resolve().parent.parent / "train" / "maps_tiny.toml"
+
+
+def config(tmp_path, name, iterations=6, **train):
+    text = TINY.read_text().replace('cache_dir = "outputs/data/maps_tiny"', f'cache_dir = "{tmp_path / "data"}"')
+    text = text.replace('out = "outputs/train/maps_tiny"', f'out = "{tmp_path / name}"')
+    text = text.replace("iterations = 6", f"iterations = {iterations}")
+    for key, value in train.items():
+        text = text.replace(f"{key} = ", f"{key} = {value}\n# ", 1)
+    path = tmp_path / f"{name}-{iterations}.toml"
+    path.write_text(text)
+    return path
+
+
+def weights(run: Path) -> dict:
+    return load_file(list_checkpoints(run)[-1] / "weights.safetensors")
+
+
+def test_outputs_and_exact_resume(tmp_path):
+    straight = train_maps(config(tmp_path, "straight"), log=lambda *_: None)
+    records = [json.loads(line) for line in (straight / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in records] == [1, 2, 3, 4, 5, 6]
+    assert all(r["G"] > 0 and r["D"] > 0 for r in records)
+    assert sorted(p.name for p in (straight / "images").iterdir()) == ["step-00000003.png", "step-00000006.png"]
+    assert [p.name for p in list_checkpoints(straight)] == ["ckpt-00000003", "ckpt-00000006"]
+
+    train_maps(config(tmp_path, "resumed", iterations=3), log=lambda *_: None)  # killed after step 3 ...
+    resumed = train_maps(config(tmp_path, "resumed", iterations=6), log=lambda *_: None)  # ... and resumed
+    a, b = weights(straight), weights(resumed)
+    assert a.keys() == b.keys()
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+
+
+def test_checkpoints_are_atomic_and_load_without_code(tmp_path):
+    net = torch.nn.Linear(3, 2)
+    save_checkpoint(tmp_path, 5, {"net": net}, {"note": "x"})
+    (tmp_path / ".ckpt-crashed").mkdir()  # a write that was killed
+    (tmp_path / "ckpt-00000009").mkdir()  # an incomplete folder
+    assert [p.name for p in list_checkpoints(tmp_path)] == ["ckpt-00000005"]
+    state = torch.load(tmp_path / "ckpt-00000005" / "state.pt", weights_only=True)
+    assert state == {"note": "x", "step": 5}
+    other = torch.nn.Linear(3, 2)
+    load_checkpoint(tmp_path / "ckpt-00000005", {"net": other})
+    assert torch.equal(other.weight, net.weight)
+    with pytest.raises(ValueError, match="does not fit module 'net'"):
+        load_checkpoint(tmp_path / "ckpt-00000005", {"net": torch.nn.Linear(4, 2)})
+
+
+def test_two_processes_with_gloo_stay_in_sync(tmp_path):
+    cfg = config(tmp_path, "ddp", iterations=3)
+    train_maps(config(tmp_path, "warm", iterations=1), log=lambda *_: None)  # render the data once
+    env = {**os.environ, "NGP_MI_THREADS": "1", "OMP_NUM_THREADS": "1"}
+    done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
+                           "29517", "-m", "ngp_mi.cli", "train", "maps", "--config", str(cfg)],
+                          capture_output=True, text=True, timeout=600, env=env)
+    assert done.returncode == 0, done.stderr[-2000:]
+    records = [json.loads(line) for line in (tmp_path / "ddp" / "log.jsonl").read_text().splitlines()]
+    assert records[-1] == {"step": 3, "world": 2, "ranks_in_sync": True}
+    assert all(r["world"] == 2 for r in records)
