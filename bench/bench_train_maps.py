@@ -1,0 +1,60 @@
+"""Benchmark: training speed of the map networks on the CPU (seconds per iteration, peak memory).
+
+The ``cpu`` preset's networks (train/maps_cpu.toml: ngf 24, 4 ResNet blocks, PatchGANs 34 + 70,
+albedo 16) at 64² and 128², batch 8; one iteration = both cycles, the generator step and the discriminator step.
+    .venv/bin/python bench/bench_train_maps.py [--iterations 8]
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import resource
+import statistics
+import tempfile
+import time
+import tomllib
+from pathlib import Path
+
+import torch
+
+from ngp_mi import backend
+from ngp_mi.data.datasets import DepthDataset, ReflectanceMapDataset
+from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
+from ngp_mi.models.maps import MapsModel
+from ngp_mi.train_maps import _Batches, model_config
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--iterations", type=int, default=8)
+    parser.add_argument("--batch", type=int, default=8)
+    args = parser.parse_args()
+    b = backend.load()
+    config = tomllib.loads((ROOT / "train" / "maps_cpu.toml").read_text())
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for res in (64, 128):
+            data = Path(tmp) / f"d{res}"
+            render_dataset(DatasetConfig(source="chair", num_shapes=8, views=4, resolution=res), data, progress=False)
+            torch.manual_seed(0)
+            model = MapsModel(model_config(config))
+            maps = _Batches(ReflectanceMapDataset(data), args.batch, 0, 0, 1)
+            depth = _Batches(DepthDataset(data), args.batch, 1, 0, 1)
+            times = []
+            for step in range(args.iterations + 1):
+                start = time.perf_counter()
+                model.optimize(depth(step), maps(step))
+                times.append(time.perf_counter() - start)
+            rows.append((res, statistics.median(times[1:]), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024))
+    print(f"# bench_train_maps — {time.strftime('%Y-%m-%d')}, {platform.machine()}, torch {torch.__version__} "
+          f"({torch.get_num_threads()} threads), {b.variant}; preset cpu, batch {args.batch}\n")
+    print("| res | s / iteration (median) | iterations / s | peak RSS MiB (process, so far) |\n|---|---|---|---|")
+    for res, seconds, rss in rows:
+        print(f"| {res}² | {seconds:.2f} | {1 / seconds:.2f} | {rss:.0f} |")
+
+
+if __name__ == "__main__":
+    main()
