@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from typing import Sequence
 
@@ -64,6 +65,14 @@ def _train(args: argparse.Namespace) -> int:
 
     out = train_maps(args.config)
     print(f"train {args.stage}: outputs in {out}")
+    return 0
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from ngp_mi.eval.maps_eval import evaluate_maps
+
+    result = evaluate_maps(args.run, args.data, args.out or f"{args.run}/eval", coarse_sigma=args.coarse_sigma)
+    print(json.dumps(result, indent=1))
     return 0
 
 
@@ -143,6 +152,16 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("stage", choices=["maps"], help="what to train")
     train.add_argument("--config", required=True, help="TOML config, e.g. train/maps_tiny.toml")
     train.set_defaults(func=_train)
+
+    evaluate = sub.add_parser("evaluate", help="evaluate trained map networks on held-out maps (normal error, albedo)",
+                              description="Normal angular error of G_n from a coarse depth against normals from the "
+                                          "same depth (NGP w/o G_n); E_da -> G_da albedo reconstruction and diversity.")
+    evaluate.add_argument("stage", choices=["maps"], help="what to evaluate")
+    evaluate.add_argument("--run", required=True, help="training output folder (with ckpt-*)")
+    evaluate.add_argument("--data", required=True, help="held-out render-dataset folder")
+    evaluate.add_argument("--out", help="output folder (default: RUN/eval)")
+    evaluate.add_argument("--coarse-sigma", type=float, default=2.0, help="smoothing of the coarse depth, px")
+    evaluate.set_defaults(func=_evaluate)
     return parser
 
 
