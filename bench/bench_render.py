@@ -44,15 +44,15 @@ def main() -> None:
         sensor = scene.sensors()[0]
         render(scene)  # compile once
         it = iter(cams[1:])
-        rows.append((f"aov depth+normal, same view, 1 spp", res, median_ms(lambda: render(scene), args.repeats)))
-        rows.append((f"aov, camera moved via traverse", res,
+        rows.append(("aov depth+normal, same view, 1 spp", res, median_ms(lambda: render(scene), args.repeats)))
+        rows.append(("aov, camera moved via traverse", res,
                      median_ms(lambda: (set_sensor_camera(sensor, next(it)), render(scene)), args.repeats)))
         it2 = iter(cams[1:])
-        rows.append((f"aov, new scene per view (load_dict)", res,
+        rows.append(("aov, new scene per view (load_dict)", res,
                      median_ms(lambda: render(build_scene(next(it2), shapes, lights, integrator=aov)), args.repeats)))
         pt = build_scene(cams[0], shapes, lights, integrator={"type": "path", "max_depth": 3}, spp=64)
         render(pt)
-        rows.append((f"path tracing max_depth 3, 64 spp", res, median_ms(lambda: render(pt), args.repeats)))
+        rows.append(("path tracing max_depth 3, 64 spp", res, median_ms(lambda: render(pt), args.repeats)))
 
     print(f"# bench_render — {time.strftime('%Y-%m-%d')}, {platform.processor() or platform.machine()}, "
           f"{b.variant}, {b.threads} threads, mitsuba {b.mi.__version__}, drjit {b.dr.__version__}\n")

@@ -22,7 +22,7 @@ import numpy as np
 
 from ngp_mi import backend
 from ngp_mi.camera import Camera
-from ngp_mi.render.scene import render, set_sensor_camera
+from ngp_mi.render.scene import set_sensor_camera
 
 CHANNELS = ("depth", "normal", "albedo", "noc", "mask")
 _AOVS = {"depth": ("depth", 1), "normal": ("sh_normal", 3), "albedo": ("albedo", 3), "noc": ("position", 3)}
