@@ -17,3 +17,16 @@ def trimesh_depth(mesh: TriangleMesh, camera: Camera) -> np.ndarray:
     depth = np.zeros(len(rays))
     depth[index_ray] = camera.world_to_camera(locations)[:, 2]
     return depth.reshape(camera.height, camera.width)
+
+
+def analytic_sphere(camera: Camera, radius: float):
+    """z-depth, camera-space normal and mask of a sphere at the origin, at pixel centres."""
+    rays = camera.pixel_rays()
+    unit = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+    c = camera.world_to_camera(np.zeros(3))
+    b = unit @ c
+    disc = b ** 2 - (c @ c - radius ** 2)
+    hit = disc > 0
+    t = b - np.sqrt(np.where(hit, disc, 0.0))
+    point = t[..., None] * unit
+    return np.where(hit, point[..., 2], 0.0), np.where(hit[..., None], (point - c) / radius, 0.0), hit

@@ -4,26 +4,13 @@ import numpy as np
 import pytest
 import torch
 
-from helpers import trimesh_depth
+from helpers import analytic_sphere, trimesh_depth
 from ngp_mi.camera import Camera, ViewDistribution
 from ngp_mi.geometry.primitives import box, simple_chair
 from ngp_mi.render.depth import project_depth
 from ngp_mi.render.gbuffer import GBufferRenderer
 from ngp_mi.render.maps import noc_from_depth, normals_from_depth
 from ngp_mi.render.scene import diffuse_bsdf, mesh_parts_to_mitsuba
-
-
-def analytic_sphere(camera: Camera, radius: float):
-    """z-depth, camera-space normal and mask of a sphere at the origin, at pixel centres."""
-    rays = camera.pixel_rays()
-    unit = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
-    c = camera.world_to_camera(np.zeros(3))
-    b = unit @ c
-    disc = b ** 2 - (c @ c - radius ** 2)
-    hit = disc > 0
-    t = b - np.sqrt(np.where(hit, disc, 0.0))
-    point = t[..., None] * unit
-    return np.where(hit, point[..., 2], 0.0), np.where(hit[..., None], (point - c) / radius, 0.0), hit
 
 
 @pytest.mark.parametrize("theta, phi", [(0.0, 0.0), (15.0, 60.0), (20.0, -85.0)])

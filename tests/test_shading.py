@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from helpers import analytic_sphere
 from ngp_mi.camera import Camera
 from ngp_mi.lights import DirectionalLight, PointLight, overhead_rig
 from ngp_mi.render.scene import build_scene, diffuse_bsdf, render
@@ -225,19 +226,6 @@ def test_point_light_matches_inverse_square_law():
     assert out[0, 0, 3, 3].item() == pytest.approx(3.0 * d[2] / r / r ** 2, rel=1e-6)
 
 
-def _sphere_maps(camera: Camera, radius: float):
-    """Analytic camera-space normals and mask of a sphere at the origin, at pixel centres."""
-    rays = camera.pixel_rays()
-    rays = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
-    c = camera.world_to_camera(np.zeros(3))
-    b = rays @ c
-    disc = b ** 2 - (c @ c - radius ** 2)
-    hit = disc > 0
-    t = b - np.sqrt(np.where(hit, disc, 0))
-    normal = (t[..., None] * rays - c) / radius
-    return normal, hit
-
-
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_diffuse_shading_equals_mitsuba_direct_lighting(mi, backend):
     """On exact maps of a Lambertian sphere, R_diff(k_d=1) / π equals Mitsuba's direct lighting."""
@@ -249,7 +237,7 @@ def test_diffuse_shading_equals_mitsuba_direct_lighting(mi, backend):
     shapes = {"s": {"type": "sphere", "radius": radius, "bsdf": diffuse_bsdf(albedo)}}
     reference = sum(render(build_scene(camera, shapes, [light], integrator={"type": "direct"}, spp=64))
                     for light in lights)
-    normal, hit = _sphere_maps(camera, radius)
+    _, normal, hit = analytic_sphere(camera, radius)
     maps = lambda a: torch.tensor(np.ascontiguousarray(a), dtype=torch.float32)[None]  # noqa: E731
     ours = shade(maps(normal.transpose(2, 0, 1)), maps(np.broadcast_to(np.array(albedo)[:, None, None], (3, res, res))),
                  maps(hit[None].astype(np.float32)), lights, camera, k_d=1.0, mode="diffuse", backend=backend)
