@@ -1,0 +1,22 @@
+"""Long-running checks, marked slow (``make test-slow``)."""
+
+import pytest
+
+from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
+
+
+def _rss_mib() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * 4096 / 2 ** 20
+
+
+@pytest.mark.slow
+def test_dataset_memory_stays_flat_over_2000_views(tmp_path):
+    """200 shapes (a new Mitsuba scene each) x 10 views: resident memory must not grow."""
+    samples = []
+    for chunk in range(8):
+        config = DatasetConfig(source="chair", num_shapes=25, views=10, resolution=64, seed=1000 * chunk)
+        summary = render_dataset(config, tmp_path / str(chunk), progress=False)
+        assert summary["views_rendered"] == 250
+        samples.append(_rss_mib())
+    assert samples[-1] - samples[0] < 20, f"RSS after each 250 views: {samples}"
