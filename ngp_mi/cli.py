@@ -55,7 +55,7 @@ def _compare(args: argparse.Namespace) -> int:
     config = CompareConfig(source=args.source, num_shapes=args.num_shapes, views=args.views, resolution=args.res,
                            light_setups=tuple(args.lights.split(",")),
                            spp_ladder=tuple(int(x) for x in args.spp_ladder.split(",")),
-                           reference_spp=args.reference_spp, seed=args.seed)
+                           reference_spp=args.reference_spp, seed=args.seed, maps_checkpoint=args.maps_checkpoint)
     run_compare(config, args.out)
     return 0
 
@@ -144,6 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument("--spp-ladder", default="1,4,16,64,256", help="path-tracing spp to compare (default: %(default)s)")
     compare.add_argument("--reference-spp", type=int, default=1024, help="spp of the reference (default: %(default)s)")
     compare.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
+    compare.add_argument("--maps-checkpoint", help="a `train maps` run folder: adds NGP-BP on generated maps")
     compare.set_defaults(func=_compare)
 
     train = sub.add_parser("train", help="train a stage of NGP from a config (train/*.toml); resumes automatically",

@@ -46,3 +46,17 @@ def test_r_diff_over_pi_equals_unshadowed_lambertian_radiance():
     interior = maps["mask"] > 0
     interior &= np.roll(interior, 1, 0) & np.roll(interior, -1, 0) & np.roll(interior, 1, 1) & np.roll(interior, -1, 1)
     assert psnr(reference, ours / math.pi, interior.astype(float)) > 45.0
+
+
+def test_compare_with_trained_map_networks(tmp_path):
+    from test_train_maps import config as train_config
+
+    from ngp_mi.train_maps import train_maps
+
+    run = train_maps(train_config(tmp_path, "run", iterations=2), log=lambda *_: None)
+    config = CompareConfig(num_shapes=1, views=1, resolution=32, light_setups=("rig",), spp_ladder=(4,),
+                           reference_spp=64, maps_checkpoint=str(run))
+    summary = run_compare(config, tmp_path / "cmp", log=lambda *_: None)
+    neural = [s for s in summary if s["kind"] == "neural"]
+    assert len(neural) == 2 and all(math.isfinite(s["psnr_linear"]) for s in neural)
+    assert "NGP-BP" in (tmp_path / "cmp" / "report.html").read_text()

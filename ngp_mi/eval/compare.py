@@ -56,6 +56,7 @@ class CompareConfig:
     k_d: float = 0.8
     k_s: float = 0.2
     alpha: float = 4.0
+    maps_checkpoint: str | None = None  # a `train maps` run: adds NGP-BP and R_diff on generated maps
 
 
 METRICS = ("psnr_linear", "ssim_linear", "psnr_srgb", "ssim_srgb", "flip")
@@ -88,6 +89,11 @@ def run_compare(config: CompareConfig, out: str | Path, log=print) -> dict[str, 
     out = Path(out)
     (out / "images").mkdir(parents=True, exist_ok=True)
     items = resolve_source(config.source, config.num_shapes, config.seed)
+    model = None
+    if config.maps_checkpoint:
+        from ngp_mi.eval.maps_eval import load_model
+
+        model = load_model(config.maps_checkpoint)
     rows: list[dict[str, Any]] = []
     sheets: list[str] = []
     for index, item in enumerate(items):
@@ -101,7 +107,7 @@ def run_compare(config: CompareConfig, out: str | Path, log=print) -> dict[str, 
                 name = f"{item.id.replace('/', '_')}_v{view}_{setup}"
                 log(f"compare: {name}")
                 rows_here, sheet = _compare_one(config, content, camera, gbuffer, lights, derived_seed(
-                    config.seed, index, view), out / "images" / f"{name}.png")
+                    config.seed, index, view), out / "images" / f"{name}.png", model)
                 for row in rows_here:
                     row.update(shape=item.id, view=view, lights=setup)
                 rows.extend(rows_here)
@@ -116,7 +122,7 @@ def run_compare(config: CompareConfig, out: str | Path, log=print) -> dict[str, 
 
 
 def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: GBufferRenderer,
-                 lights: list[Light], seed: int, sheet_path: Path) -> tuple[list[dict[str, Any]], str]:
+                 lights: list[Light], seed: int, sheet_path: Path, model: Any = None) -> tuple[list[dict[str, Any]], str]:
     scene_dict = {**content.shapes, **lights_to_mitsuba(lights)}
 
     def physically_based(integrator: dict, spp: int, render_seed: int) -> Callable[[], np.ndarray]:
@@ -139,6 +145,26 @@ def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: G
             return image[0].permute(1, 2, 0).numpy() / math.pi
         return run
 
+    def neural(mode: str, **constants: float) -> Callable[[], np.ndarray]:
+        """NGP on this view: maps generated from the ground-truth depth, appearance from E_da of the
+        ground-truth albedo (the exemplar handle), shaded by R_diff or R_BP."""
+        from ngp_mi.models.maps import depth_to_net
+
+        view = {"K": torch.tensor(camera.K, dtype=torch.float32)[None], "E": torch.tensor(camera.E, dtype=torch.float32)[None],
+                "bounds": torch.tensor(content.bounds, dtype=torch.float32)[None]}
+
+        def run() -> np.ndarray:
+            m = gbuffer.render(camera)
+            t = {k: torch.from_numpy(m[k]).permute(2, 0, 1)[None] if m[k].ndim == 3 else torch.from_numpy(m[k])[None, None]
+                 for k in m}
+            with torch.no_grad():
+                normal = model.G_n(depth_to_net(t["depth"], t["mask"]))
+                mu, _ = model.E_da(2 * t["albedo"] - 1)
+                albedo = (model.G_da(torch.cat([model.noc(t["depth"], t["mask"], view), normal], 1), mu) + 1) / 2
+                image = shade(normal, albedo, t["mask"], lights, camera, mode=mode, **constants)
+            return image[0].permute(1, 2, 0).numpy() / math.pi
+        return run
+
     methods: list[tuple[str, str, Callable[[], np.ndarray]]] = [
         (f"path tracing {spp} spp", "path", physically_based(path, spp, seed + 1000 + spp)) for spp in config.spp_ladder]
     methods += [
@@ -152,6 +178,12 @@ def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: G
         ("direct light, no shadows (what R_* can model)", "effect",
          physically_based({"type": "direct_unshadowed"}, 16, seed + 8)),
     ]
+    if model is not None:
+        methods += [
+            (f"NGP-BP: R_BP on generated maps (k_d {config.k_d}, k_s {config.k_s}, α {config.alpha:g})", "neural",
+             neural("blinn_phong", k_d=config.k_d, k_s=config.k_s, alpha=config.alpha)),
+            ("R_diff on generated maps (NGP w/o G_sp^real)", "neural", neural("diffuse", k_d=config.k_d)),
+        ]
     rows = [{"method": "reference", "kind": "reference", "seconds": reference_time, "spp": config.reference_spp}]
     tiles, errors, labels = [to_uint8(reference)], [np.zeros_like(mask)], ["reference"]
     for name, kind, fn in methods:
@@ -213,7 +245,7 @@ def plot_speed_accuracy(summary: list[dict[str, Any]], path: Path) -> None:
         ax.plot([s["median_ms"] for s in ladder], [s[key] for s in ladder], "o-", color="black", label="path tracing")
         for s in ladder:
             ax.annotate(f"{s['spp']} spp", (s["median_ms"], s[key]), textcoords="offset points", xytext=(4, 4), fontsize=8)
-        for s, marker in zip([s for s in summary if s["kind"] in ("deferred", "effect")], "s^Dv"):
+        for s, marker in zip([s for s in summary if s["kind"] in ("deferred", "effect", "neural")], "s^Dv*P"):
             ax.plot([s["median_ms"]], [s[key]], marker, markersize=8, label=s["method"])
         ax.set_xscale("log")
         ax.set_xlabel("time per image, ms (median)")
@@ -251,6 +283,9 @@ radiance of a Lambertian surface of albedo I_d under the same lights, and R_BP u
 <li>Deferred times include rendering the G-buffer maps and shading them. "direct + shadows" and
 "direct, no shadows" are physically based images without interreflection (and without shadows): the
 differences to the reference measure what the deferred renderers cannot model.</li>
+<li>Neural rows (with <code>--maps-checkpoint</code>): G_n and G_da of a trained run applied to the
+ground-truth depth of each view, with the appearance code taken from E_da of the ground-truth albedo
+(the exemplar handle); no realistic-specular network yet, so these are NGP-BP and R_diff on generated maps.</li>
 <li>FID / KID are not computed in this version (they need an Inception network and its weights file).</li></ul>
 <h2>Results</h2><table><tr>{''.join(f'<th>{html.escape(h)}</th>' for h in head)}</tr>
 {rows}</table>
