@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -237,10 +237,3 @@ class ViewDistribution:
         phis = rng.uniform(*self.phi_range, size=n)
         return [Camera.orbit(float(t), float(p), resolution, self.radius, self.focal_mm, self.film_mm)
                 for t, p in zip(thetas, phis)]
-
-    def grid(self, n_theta: int, n_phi: int, resolution: int | tuple[int, int] = 256) -> list[Camera]:
-        """Cameras on a regular θ × φ grid spanning the ranges (for contact sheets and sweeps)."""
-        thetas: Sequence[float] = np.linspace(*self.theta_range, n_theta)
-        phis: Sequence[float] = np.linspace(*self.phi_range, n_phi)
-        return [Camera.orbit(float(t), float(p), resolution, self.radius, self.focal_mm, self.film_mm)
-                for t in thetas for p in phis]

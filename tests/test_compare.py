@@ -4,14 +4,13 @@ import json
 import math
 
 import numpy as np
-import torch
 
 import ngp_mi.render.direct_unshadowed  # noqa: F401
 from ngp_mi.camera import Camera
 from ngp_mi.eval.compare import CompareConfig, run_compare
 from ngp_mi.eval.metrics import psnr
 from ngp_mi.lights import overhead_rig
-from ngp_mi.render.gbuffer import GBufferRenderer
+from ngp_mi.render.gbuffer import GBufferRenderer, maps_to_tensors
 from ngp_mi.render.scene import build_scene, diffuse_bsdf, render
 from ngp_mi.render.shading import shade
 
@@ -40,8 +39,7 @@ def test_r_diff_over_pi_equals_unshadowed_lambertian_radiance():
     lights = overhead_rig()
     reference = render(build_scene(camera, shapes, lights, {"type": "direct_unshadowed"}, spp=64))
     maps = GBufferRenderer(shapes, np.array([[-0.4] * 3, [0.4] * 3]), camera, ("normal", "albedo", "mask")).render(camera)
-    t = {k: torch.from_numpy(maps[k]).permute(2, 0, 1)[None] if maps[k].ndim == 3 else torch.from_numpy(maps[k])[None, None]
-         for k in maps}
+    t = maps_to_tensors(maps)
     ours = shade(t["normal"], t["albedo"], t["mask"], lights, camera, k_d=1.0, mode="diffuse")[0].permute(1, 2, 0).numpy()
     interior = maps["mask"] > 0
     interior &= np.roll(interior, 1, 0) & np.roll(interior, -1, 0) & np.roll(interior, 1, 1) & np.roll(interior, -1, 1)

@@ -76,8 +76,3 @@ def read_exr(path: str | Path, channels: Iterable[str] | None = None) -> dict[st
         raise ValueError(f"{path}: missing channel(s) {missing}; the file has {sorted(found)}")
     return {c: found[c] for c in wanted}
 
-
-def read_exr_metadata(path: str | Path) -> dict[str, str]:
-    """The string attributes of the header (what :func:`write_exr` stored as ``metadata``)."""
-    header = OpenEXR.File(str(path), header_only=True).header()
-    return {k: v for k, v in header.items() if isinstance(v, str)}

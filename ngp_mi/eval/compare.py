@@ -37,7 +37,7 @@ from ngp_mi.data.render_dataset import DatasetConfig, derived_seed, view_cameras
 from ngp_mi.data.sources import resolve_source
 from ngp_mi.eval.metrics import flip, psnr, ssim
 from ngp_mi.lights import Light
-from ngp_mi.render.gbuffer import GBufferRenderer
+from ngp_mi.render.gbuffer import GBufferRenderer, maps_to_tensors
 from ngp_mi.render.scene import build_scene, lights_to_mitsuba, render, set_sensor_camera
 from ngp_mi.render.shading import shade
 from ngp_mi.viz import contact_sheet, linear_to_srgb, save_png, to_uint8
@@ -137,9 +137,7 @@ def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: G
 
     def deferred(mode: str, **constants: float) -> Callable[[], np.ndarray]:
         def run() -> np.ndarray:
-            m = gbuffer.render(camera)
-            t = {k: torch.from_numpy(m[k]).permute(2, 0, 1)[None] if m[k].ndim == 3 else torch.from_numpy(m[k])[None, None]
-                 for k in ("normal", "albedo", "mask")}
+            t = maps_to_tensors(gbuffer.render(camera))
             with torch.no_grad():
                 image = shade(t["normal"], t["albedo"], t["mask"], lights, camera, mode=mode, **constants)
             return image[0].permute(1, 2, 0).numpy() / math.pi
@@ -154,9 +152,7 @@ def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: G
                 "bounds": torch.tensor(content.bounds, dtype=torch.float32)[None]}
 
         def run() -> np.ndarray:
-            m = gbuffer.render(camera)
-            t = {k: torch.from_numpy(m[k]).permute(2, 0, 1)[None] if m[k].ndim == 3 else torch.from_numpy(m[k])[None, None]
-                 for k in m}
+            t = maps_to_tensors(gbuffer.render(camera))
             with torch.no_grad():
                 normal = model.G_n(depth_to_net(t["depth"], t["mask"]))
                 mu, _ = model.E_da(2 * t["albedo"] - 1)

@@ -16,7 +16,7 @@ Mitsuba's ``depth`` AOV is the ray length from the *near plane*; we convert it t
 
 from __future__ import annotations
 
-from typing import Any, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 import numpy as np
 
@@ -24,9 +24,20 @@ from ngp_mi import backend
 from ngp_mi.camera import Camera
 from ngp_mi.render.scene import set_sensor_camera
 
+if TYPE_CHECKING:  # torch is imported only when tensors are asked for
+    import torch
+
 CHANNELS = ("depth", "normal", "albedo", "noc", "mask")
 _AOVS = {"depth": ("depth", 1), "normal": ("sh_normal", 3), "albedo": ("albedo", 3), "noc": ("position", 3)}
 _NEAR_CLIP = 1e-3  # Camera.to_mitsuba's near clip: Mitsuba's rays start on the near plane
+
+
+def maps_to_tensors(maps: Mapping[str, np.ndarray]) -> dict[str, "torch.Tensor"]:
+    """G-buffer maps (H, W) / (H, W, 3) as a batch of one NCHW torch tensor each (sharing memory)."""
+    import torch
+
+    return {name: torch.from_numpy(m).permute(2, 0, 1)[None] if m.ndim == 3 else torch.from_numpy(m)[None, None]
+            for name, m in maps.items()}
 
 
 class GBufferRenderer:

@@ -381,8 +381,7 @@ def shade(normal: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor | None 
     dtype = torch.float64 if any(t.dtype == torch.float64 for t in tensors) else torch.float32
     device = normal.device
     if not isinstance(lights, CameraLights):
-        world = camera if camera is not None else None
-        cameras = [world] if isinstance(world, Camera) else (list(world) if world is not None else None)
+        cameras = [camera] if isinstance(camera, Camera) else (list(camera) if camera is not None else None)
         lights = CameraLights.from_lights(list(lights), cameras, dtype=dtype, device=device)
     if lights.positions.shape[1] and depth is None:
         raise ValueError("shade: point lights need the depth map (depth=...)")
