@@ -4,7 +4,7 @@
 Forward, and forward + backward with gradients for normals, albedo and the light parameters.
 The floor is (bytes read + written) / copy bandwidth, the bandwidth measured in the same run
 by a large torch copy. Prints a Markdown table of medians.
-    .venv/bin/python bench/bench_shading.py [--repeats 21]
+    .venv/bin/python bench/bench_shading.py [--repeats 21] [--device cuda]
 """
 
 from __future__ import annotations
@@ -24,19 +24,26 @@ from ngp_mi.render.shading import CameraLights, shade
 N, RES = 8, 256
 
 
+def sync() -> None:
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
+
+
 def median_ms(fn, repeats: int) -> float:
     fn()  # warm-up (JIT compile / allocator)
     times = []
     for _ in range(repeats):
+        sync()
         start = time.perf_counter()
         fn()
+        sync()
         times.append(time.perf_counter() - start)
     return 1e3 * statistics.median(times)
 
 
-def copy_bandwidth(repeats: int) -> float:
+def copy_bandwidth(repeats: int, device: str) -> float:
     """Bytes per second of a large out-of-cache copy (read + write counted)."""
-    src = torch.rand(64 * 2 ** 20 // 4)
+    src = torch.rand(64 * 2 ** 20 // 4, device=device)
     dst = torch.empty_like(src)
     ms = median_ms(lambda: dst.copy_(src), repeats)
     return 2 * src.numel() * 4 / (ms * 1e-3)
@@ -45,7 +52,9 @@ def copy_bandwidth(repeats: int) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--repeats", type=int, default=21)
+    parser.add_argument("--device", default="cpu", help="torch device of the maps (cuda: Dr.Jit's CUDA backend)")
     args = parser.parse_args()
+    torch.set_default_device(args.device)
     b = backend.load()
     torch.manual_seed(0)
     cameras = [Camera.orbit(10.0, -60.0 + 15 * i, RES) for i in range(N)]
@@ -53,10 +62,10 @@ def main() -> None:
     normal[:, 2] -= 1.0
     albedo = torch.rand(N, 3, RES, RES)
     mask = (torch.rand(N, 1, RES, RES) > 0.3).float()
-    per_camera = CameraLights.from_lights(overhead_rig(), cameras)  # world lights seen by each camera
-    bandwidth = copy_bandwidth(args.repeats)
+    per_camera = CameraLights.from_lights(overhead_rig(), cameras, device=args.device)  # world lights seen by each camera
+    bandwidth = copy_bandwidth(args.repeats, args.device)
 
-    shared = CameraLights.from_lights(overhead_rig(), None)  # camera-space lights, one set for the batch
+    shared = CameraLights.from_lights(overhead_rig(), None, device=args.device)  # camera-space lights, one set for the batch
     rows = []
     for mode in ("blinn_phong", "diffuse"):
         for name, base in (("drjit", per_camera), ("torch", per_camera), ("drjit, shared lights", shared)):
@@ -77,7 +86,7 @@ def main() -> None:
     pixels = N * RES * RES
     fwd_bytes = pixels * 4 * (3 + 3 + 1 + 3)  # read normal, albedo, mask; write RGB
     floor_ms = 1e3 * fwd_bytes / bandwidth
-    print(f"# bench_shading — {time.strftime('%Y-%m-%d')}, {platform.machine()}, {b.variant}, {b.threads} threads, "
+    print(f"# bench_shading — {time.strftime('%Y-%m-%d')}, {platform.machine()}, {b.variant}, maps on {args.device}, {b.threads} threads, "
           f"torch {torch.__version__} ({torch.get_num_threads()} threads)\n")
     print(f"copy bandwidth {bandwidth / 1e9:.1f} GB/s; forward traffic {fwd_bytes / 2 ** 20:.1f} MiB "
           f"-> floor {floor_ms:.2f} ms\n")

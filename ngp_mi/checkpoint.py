@@ -61,4 +61,4 @@ def load_checkpoint(path: str | Path, modules: dict[str, torch.nn.Module]) -> di
         if missing or unexpected:
             raise ValueError(f"{path}: checkpoint does not fit module {name!r} "
                              f"(missing {list(missing)[:3]}, unexpected {list(unexpected)[:3]})")
-    return torch.load(path / "state.pt", weights_only=True)
+    return torch.load(path / "state.pt", map_location="cpu", weights_only=True)  # optimisers move state to their parameters

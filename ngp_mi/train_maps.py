@@ -7,13 +7,14 @@ The config (TOML) has three tables:
   ``resolution``) is rendered into ``cache_dir`` first (and reused).
 * ``[model]`` — fields of :class:`~ngp_mi.models.maps.MapsConfig`.
 * ``[train]`` — ``iterations``, ``batch_size``, ``seed``, ``out``, ``log_every``, ``image_every``,
-  ``checkpoint_every``.
+  ``checkpoint_every``, ``device`` (``"auto"``: CUDA when available, else CPU; or ``"cpu"`` / ``"cuda"``).
 
 Outputs under ``out``: ``log.jsonl`` (losses per logged step; TensorBoard too if installed),
 ``images/step-*.png`` (every intermediate map), ``ckpt-*`` (see :mod:`ngp_mi.checkpoint`). A run
 resumes from the newest checkpoint and reproduces the uninterrupted run exactly: the data order
 is a seeded permutation per epoch, and torch's generator is reseeded from (seed, step, rank)
-before every step.
+before every step. Resumes are bitwise exact on the CPU; on a GPU, atomic reductions (cuDNN's, Dr.Jit's
+scatter-adds) reorder float sums, so a resumed run matches up to rounding.
 
 Several processes (``torchrun --nproc_per_node N -m ngp_mi.cli train maps …``, gloo on CPU, NCCL
 on GPUs) split every batch by rank and average gradients with ``torch.distributed.all_reduce``
@@ -108,6 +109,21 @@ def _grid(visuals: dict[str, torch.Tensor]) -> np.ndarray:
     return contact_sheet(tiles, list(visuals), columns=len(tiles))
 
 
+def training_device(name: str, local_rank: int = 0) -> torch.device:
+    """``auto`` → the process's GPU (``cuda:LOCAL_RANK``) when CUDA works, else the CPU."""
+    if name not in ("auto", "cpu", "cuda"):
+        raise ValueError(f"[train] device must be 'auto', 'cpu' or 'cuda', got {name!r}")
+    if name == "cpu" or (name == "auto" and not torch.cuda.is_available()):
+        return torch.device("cpu")
+    if not torch.cuda.is_available():
+        raise ValueError("[train] device = 'cuda' but torch sees no CUDA device")
+    return torch.device("cuda", local_rank % torch.cuda.device_count())
+
+
+def to_device(batch: dict[str, Any], device: torch.device) -> dict[str, Any]:
+    return {k: v.to(device, non_blocking=True) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+
+
 def average_gradients(parameters: list[torch.Tensor]) -> None:
     """Mean of every gradient over the processes (what DistributedDataParallel does, per step)."""
     world = dist.get_world_size()
@@ -124,8 +140,11 @@ def train_maps(config_path: str | Path, log=print) -> Path:
     config = load_config(config_path)
     train = config["train"]
     world = int(os.environ.get("WORLD_SIZE", "1"))
+    device = training_device(train.get("device", "auto"), int(os.environ.get("LOCAL_RANK", "0")))
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
     if world > 1 and not dist.is_initialized():
-        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
     rank = dist.get_rank() if dist.is_initialized() else 0
     out = Path(train.get("out", "outputs/train/maps"))
     seed = int(train.get("seed", 0))
@@ -134,7 +153,7 @@ def train_maps(config_path: str | Path, log=print) -> Path:
     depth_batches = _Batches(DepthDataset(depth_root), train["batch_size"], seed + 10 ** 6, rank, world)
 
     torch.manual_seed(seed)  # identical initial weights on every rank
-    model = MapsModel(model_config(config))
+    model = MapsModel(model_config(config)).to(device)  # in place: the optimisers keep their parameters
     modules = {name: getattr(model, name) for name in NETWORKS}
     step = 0
     checkpoints = list_checkpoints(out)
@@ -145,6 +164,8 @@ def train_maps(config_path: str | Path, log=print) -> Path:
         step = int(state["step"])
         if rank == 0:
             log(f"train maps: resuming from {checkpoints[-1]} (step {step})")
+    if rank == 0:
+        log(f"train maps: {world} process(es) on {device}")
     if world > 1:
         model.gradient_hook = average_gradients
 
@@ -154,7 +175,7 @@ def train_maps(config_path: str | Path, log=print) -> Path:
     start, first = time.perf_counter(), step
     while step < iterations:
         torch.manual_seed(seed * 1_000_003 + step * world + rank)
-        losses = model.optimize(depth_batches(step), maps_batches(step))
+        losses = model.optimize(to_device(depth_batches(step), device), to_device(maps_batches(step), device))
         step += 1
         bar.update(1)
         if rank != 0:

@@ -32,15 +32,16 @@ def weights(run: Path) -> dict:
 
 
 def test_outputs_and_exact_resume(tmp_path):
-    straight = train_maps(config(tmp_path, "straight"), log=lambda *_: None)
+    # Bitwise exactness holds on the CPU; CUDA's atomic reductions (cuDNN, Dr.Jit's scatter-adds) reorder sums.
+    straight = train_maps(config(tmp_path, "straight", device='"cpu"'), log=lambda *_: None)
     records = [json.loads(line) for line in (straight / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in records] == [1, 2, 3, 4, 5, 6]
     assert all(r["G"] > 0 and r["D"] > 0 for r in records)
     assert sorted(p.name for p in (straight / "images").iterdir()) == ["step-00000003.png", "step-00000006.png"]
     assert [p.name for p in list_checkpoints(straight)] == ["ckpt-00000003", "ckpt-00000006"]
 
-    train_maps(config(tmp_path, "resumed", iterations=3), log=lambda *_: None)  # killed after step 3 ...
-    resumed = train_maps(config(tmp_path, "resumed", iterations=6), log=lambda *_: None)  # ... and resumed
+    train_maps(config(tmp_path, "resumed", iterations=3, device='"cpu"'), log=lambda *_: None)  # killed after step 3 ...
+    resumed = train_maps(config(tmp_path, "resumed", iterations=6, device='"cpu"'), log=lambda *_: None)  # ... resumed
     a, b = weights(straight), weights(resumed)
     assert a.keys() == b.keys()
     for key in a:
@@ -63,7 +64,7 @@ def test_checkpoints_are_atomic_and_load_without_code(tmp_path):
 
 
 def test_two_processes_with_gloo_stay_in_sync(tmp_path):
-    cfg = config(tmp_path, "ddp", iterations=3)
+    cfg = config(tmp_path, "ddp", iterations=3, device='"cpu"')  # two CPU processes, gloo, on any machine
     train_maps(config(tmp_path, "warm", iterations=1), log=lambda *_: None)  # render the data once
     env = {**os.environ, "NGP_MI_THREADS": "1", "OMP_NUM_THREADS": "1"}
     done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",

@@ -57,7 +57,7 @@ def load_model(run: str | Path) -> MapsModel:
     checkpoints = list_checkpoints(run)
     if not checkpoints:
         raise ValueError(f"{run}: no checkpoint found (ckpt-*/weights.safetensors + state.pt)")
-    state = torch.load(checkpoints[-1] / "state.pt", weights_only=True)
+    state = torch.load(checkpoints[-1] / "state.pt", map_location="cpu", weights_only=True)
     model = MapsModel(model_config(json.loads(state["config"])))
     load_checkpoint(checkpoints[-1], {name: getattr(model, name) for name in NETWORKS})
     return model.eval()

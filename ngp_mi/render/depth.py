@@ -105,13 +105,18 @@ class MeshProjector:
         return z, mi.Float(hit), normal, position
 
 
-def _to_torch_maps(arrays: Sequence[Any], n: int, height: int, width: int) -> list[torch.Tensor]:
-    """Dr.Jit (lane-major) arrays → NCHW torch tensors (scalars: 1 channel, 3-vectors: 3)."""
+def _to_torch_maps(arrays: Sequence[Any], n: int, height: int, width: int,
+                   device: torch.device) -> list[torch.Tensor]:
+    """Dr.Jit (lane-major) arrays → NCHW torch tensors on ``device`` (scalars: 1 channel, 3-vectors: 3).
+
+    The Mitsuba variant decides where Dr.Jit computes (CUDA or CPU); results follow the caller's
+    ``vertices`` instead, so that the operator composes with torch code on either device.
+    """
     dr = backend.drjit()
     out = []
     for a in arrays:
         channels = [a[k] for k in range(3)] if dr.depth_v(a) > 1 else [a]
-        out.append(torch.stack([c.torch().reshape(n, height, width) for c in channels], dim=1))
+        out.append(torch.stack([c.torch().reshape(n, height, width) for c in channels], dim=1).to(device))
     return out
 
 
@@ -125,7 +130,7 @@ class _ProjectFast(torch.autograd.Function):
         projector.set_vertices(vertices)
         arrays = projector.trace(table, width, height)
         dr.eval(*arrays)  # before any later params.update() changes the geometry under lazy rays
-        z, hit, normal, position = _to_torch_maps(arrays, len(table), height, width)
+        z, hit, normal, position = _to_torch_maps(arrays, len(table), height, width, vertices.device)
         ctx.projector, ctx.table, ctx.size = projector, table, (width, height)
         ctx.save_for_backward(vertices)
         ctx.mark_non_differentiable(hit)
@@ -149,7 +154,7 @@ class _ProjectFast(torch.autograd.Function):
         dr.set_grad(position, mi.Vector3f(*lanes(g_position)))
         dr.enqueue(dr.ADMode.Backward, z, normal, position)
         dr.traverse(dr.ADMode.Backward)
-        grad = dr.grad(positions).torch().reshape(-1, 3).to(vertices.dtype)
+        grad = dr.grad(positions).torch().reshape(-1, 3).to(vertices.device, vertices.dtype)
         dr.disable_grad(positions)
         return None, None, None, None, grad
 

@@ -121,7 +121,7 @@ class _RenderDepthCoverage(torch.autograd.Function):
             images.append(image.torch()[..., :2].permute(2, 0, 1))
         ctx.projector, ctx.cameras, ctx.spp, ctx.boundary_spp, ctx.seed = projector, list(cameras), spp, boundary_spp, seed
         ctx.save_for_backward(vertices)
-        out = torch.stack(images)
+        out = torch.stack(images).to(vertices.device)
         return out[:, :1].contiguous(), out[:, 1:2].contiguous()
 
     @staticmethod
@@ -140,7 +140,7 @@ class _RenderDepthCoverage(torch.autograd.Function):
             r.integrator.sppc, r.integrator.sppp = ctx.spp, ctx.boundary_spp
             r.integrator.render_backward(projector.scene, projector.params, mi.TensorXf(grad_image),
                                          r.sensor, seed=ctx.seed + i, spp=0)
-        grad = dr.grad(projector.params[projector.key]).torch().reshape(-1, 3).to(vertices.dtype)
+        grad = dr.grad(projector.params[projector.key]).torch().reshape(-1, 3).to(vertices.device, vertices.dtype)
         dr.disable_grad(positions)
         return None, None, None, None, None, grad
 
