@@ -61,10 +61,23 @@ def _compare(args: argparse.Namespace) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from ngp_mi.train_maps import train_maps
-
-    out = train_maps(args.config)
+    if args.stage == "shape":
+        from ngp_mi.train_shape import train_shape as run
+    else:
+        from ngp_mi.train_maps import train_maps as run
+    out = run(args.config)
     print(f"train {args.stage}: outputs in {out}")
+    return 0
+
+
+def _sample_shapes(args: argparse.Namespace) -> int:
+    from ngp_mi.sample_shapes import sample_shapes
+
+    summary = sample_shapes(args.run, args.out, num=args.num, seed=args.seed, resolution=args.resolution,
+                            coarse=args.coarse, fmt=args.format, interpolate=tuple(args.interpolate) if args.interpolate
+                            else None, steps=args.steps, spp=args.spp)
+    print(f"sample-shapes: {len(summary['shapes'])} shapes ({summary['empty']} empty) in {args.out}; "
+          f"median extraction {summary['median_seconds']:.2f} s")
     return 0
 
 
@@ -148,11 +161,29 @@ def build_parser() -> argparse.ArgumentParser:
     compare.set_defaults(func=_compare)
 
     train = sub.add_parser("train", help="train a stage of NGP from a config (train/*.toml); resumes automatically",
-                           description="Train the map networks (stage 'maps') from a TOML config; logs, image grids "
-                                       "and checkpoints go to the config's [train].out. Multi-process with torchrun.")
-    train.add_argument("stage", choices=["maps"], help="what to train")
+                           description="Train the shape prior (stage 'shape': IM-NET autoencoder + latent WGAN-GP) "
+                                       "or the map networks (stage 'maps') from a TOML config; logs, metrics, image "
+                                       "grids and checkpoints go to the config's [train].out. Maps: multi-process "
+                                       "with torchrun.")
+    train.add_argument("stage", choices=["shape", "maps"], help="what to train")
     train.add_argument("--config", required=True, help="TOML config, e.g. train/maps_tiny.toml")
     train.set_defaults(func=_train)
+
+    sample = sub.add_parser("sample-shapes", help="meshes and a rendered contact sheet from a trained shape prior",
+                            description="Sample z_s, extract meshes (coarse-to-fine marching cubes), write OBJ/PLY, "
+                                        "sheet.png, samples.json and report.md; or interpolate between two seeds.")
+    sample.add_argument("--run", required=True, help="a `train shape` output folder (with ckpt-*)")
+    sample.add_argument("--out", required=True, help="output folder")
+    sample.add_argument("--num", type=int, default=16, help="number of shapes (default: %(default)s)")
+    sample.add_argument("--seed", type=int, default=0, help="latent seed of the first shape (default: %(default)s)")
+    sample.add_argument("--resolution", type=int, default=128, help="marching-cubes grid (default: %(default)s)")
+    sample.add_argument("--coarse", type=int, default=32, help="coarse grid of the coarse-to-fine pass (default: %(default)s)")
+    sample.add_argument("--format", choices=["obj", "ply"], default="obj", help="mesh format (default: %(default)s)")
+    sample.add_argument("--interpolate", type=int, nargs=2, metavar=("SEED_A", "SEED_B"),
+                        help="interpolate (slerp) between the latents of two seeds instead")
+    sample.add_argument("--steps", type=int, default=8, help="interpolation steps (default: %(default)s)")
+    sample.add_argument("--spp", type=int, default=16, help="samples per pixel of the previews (default: %(default)s)")
+    sample.set_defaults(func=_sample_shapes)
 
     evaluate = sub.add_parser("evaluate", help="evaluate trained map networks on held-out maps (normal error, albedo)",
                               description="Normal angular error of G_n from a coarse depth against normals from the "
