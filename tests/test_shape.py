@@ -248,3 +248,13 @@ def test_shape_model_step_changes_only_its_own_networks():
     assert all(torch.equal(before[k], v) for k, v in model.G_latent.state_dict().items())
     losses = model.gan_step(torch.rand(8, 8))
     assert set(losses) == {"gan_wasserstein", "gan_gp", "gan_G"} and all(np.isfinite(list(losses.values())))
+
+
+@pytest.mark.parametrize("preset", ["tiny", "cpu", "paper"])
+def test_every_preset_config_loads_and_builds(preset):
+    from ngp_mi.train_shape import data_config, load_config, model_config
+
+    config = load_config(TINY.with_name(f"shape_{preset}.toml"))
+    data = data_config(config["data"])
+    model = ShapeModel(model_config(config["model"], data))
+    assert model.encoder(torch.zeros(1, 1, *(data.voxel_resolution,) * 3)).shape == (1, model.config.code_dim)

@@ -146,9 +146,9 @@ class ShapeModel(nn.Module):
         code = code.reshape(1, -1)
 
         def occupancy(points: torch.Tensor) -> torch.Tensor:
-            points = points.to(self.device, code.dtype)
-            outs = [self.decoder(points[None, i:i + chunk], code)[0, :, 0] for i in range(0, len(points), chunk)]
-            return torch.cat(outs).to(points.device)
+            x = points.to(self.device, code.dtype)
+            outs = [self.decoder(x[None, i:i + chunk], code)[0, :, 0] for i in range(0, len(x), chunk)]
+            return torch.cat(outs).to(points.device)  # back where the caller's points are
         return occupancy
 
     @torch.no_grad()
