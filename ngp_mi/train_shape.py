@@ -4,7 +4,8 @@ The config (TOML) has three tables:
 
 * ``[data]`` — the fields of :class:`~ngp_mi.data.shapes.ShapeDataConfig` (``source``, ``num_shapes``,
   ``voxel_resolution``, ``resolutions``, ``points``, …), ``cache_dir`` where the shape data is
-  built (and reused), and ``held_out``: the last shapes, kept out of training for the IoU metric.
+  built (and reused), ``workers`` (processes that build it), and ``held_out``: the last shapes,
+  kept out of training for the IoU metric.
 * ``[model]`` — fields of :class:`~ngp_mi.models.shape.ShapeConfig`.
 * ``[train]`` — ``stages`` (a list of ``[resolution, iterations]`` of the autoencoder, IM-NET's
   progressive 16³ → 32³ → 64³), ``gan_iterations``, ``batch_size``, ``points_per_shape`` (0: all
@@ -53,7 +54,7 @@ def load_config(path: str | Path) -> dict[str, Any]:
     for table in ("data", "model", "train"):
         if table not in config:
             raise ValueError(f"{path}: missing table [{table}]")
-    checks = {"data": {f.name for f in dataclasses.fields(ShapeDataConfig)} | {"cache_dir", "held_out"},
+    checks = {"data": {f.name for f in dataclasses.fields(ShapeDataConfig)} | {"cache_dir", "held_out", "workers"},
               "model": {f.name for f in dataclasses.fields(ShapeConfig)},
               "train": set(TRAIN_DEFAULTS) | {"stages"}}
     for table, known in checks.items():
@@ -71,7 +72,8 @@ def load_config(path: str | Path) -> dict[str, Any]:
 
 
 def data_config(data: dict[str, Any]) -> ShapeDataConfig:
-    values = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items() if k not in ("cache_dir", "held_out")}
+    skip = ("cache_dir", "held_out", "workers")
+    values = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items() if k not in skip}
     return ShapeDataConfig(**values)
 
 
@@ -157,7 +159,7 @@ def train_shape(config_path: str | Path, log=print) -> Path:
     seed = int(train["seed"])
     dcfg = data_config(config["data"])
     cache = Path(config["data"].get("cache_dir", "outputs/data/shape"))
-    build_shape_dataset(dcfg, cache, progress=False)
+    build_shape_dataset(dcfg, cache, progress=True, workers=int(config["data"].get("workers", 1)))
     all_ids = ShapeDataset(cache, dcfg.resolutions[0]).ids
     train_ids, held_ids = split_ids(all_ids, int(config["data"].get("held_out", 0)))
     datasets = {r: ShapeDataset(cache, r, train_ids) for r in dcfg.resolutions}

@@ -93,6 +93,12 @@ def test_shape_dataset_builds_resumes_and_skips_bad_meshes(tmp_path):
     again = build_shape_dataset(config, out, progress=False)
     assert again["built"] == 0 and again["present"] == 2
 
+    parallel = build_shape_dataset(config, tmp_path / "parallel", progress=False, workers=2)
+    assert parallel["built"] == 2 and list(parallel["skipped"]) == ["broken"]
+    for name in ("box.npz", "open_sphere.npz"):  # the same files, whichever process built them
+        a, b = np.load(out / "shapes" / name), np.load(tmp_path / "parallel" / "shapes" / name)
+        assert all(np.array_equal(a[k], b[k]) for k in a.files)
+
     data = ShapeDataset(out, 32)
     assert data.ids == ["box", "open_sphere"]
     item = data[1]

@@ -148,9 +148,22 @@ def _check_settings(out: Path, config: ShapeDataConfig) -> None:
     os.replace(tmp, settings)
 
 
+def _build_one(config: ShapeDataConfig, out: Path, index: int) -> str | None:
+    """Write shape ``index``; returns None, or the reason it was skipped (runs in worker processes)."""
+    item = shape_items(config.source, config.num_shapes, config.seed)[index]
+    try:
+        _write_npz(shape_file(out, item.id), sample_shape(config, item, index))
+    except Exception as exc:  # one bad shape must not end a long build
+        return str(exc) or type(exc).__name__
+    return None
+
+
 def build_shape_dataset(config: ShapeDataConfig, out: str | Path, progress: bool = True,
-                        strict: bool = False) -> dict[str, Any]:
-    """Build (or finish building) the shape dataset in ``out``; returns the summary."""
+                        strict: bool = False, workers: int = 1) -> dict[str, Any]:
+    """Build (or finish building) the shape dataset in ``out`` with ``workers`` processes; returns the summary."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
     from tqdm import tqdm
 
     out = Path(out)
@@ -158,24 +171,28 @@ def build_shape_dataset(config: ShapeDataConfig, out: str | Path, progress: bool
     items = shape_items(config.source, config.num_shapes, config.seed)
     summary: dict[str, Any] = {"total": len(items), "present": 0, "built": 0, "skipped": {}}
     start = time.perf_counter()
-    index_lines = []
-    with tqdm(total=len(items), unit="shape", disable=not progress, desc="shape data", dynamic_ncols=True) as bar:
-        for index, item in enumerate(items):
-            path = shape_file(out, item.id)
-            if path.exists():
-                summary["present"] += 1
-            else:
-                try:
-                    _write_npz(path, sample_shape(config, item, index))
+    todo = [i for i, item in enumerate(items) if not shape_file(out, item.id).exists()]
+    summary["present"] = len(items) - len(todo)
+    with tqdm(total=len(items), initial=summary["present"], unit="shape", disable=not progress, desc="shape data",
+              dynamic_ncols=True) as bar:
+        # "spawn": a forked child of a process whose torch / OpenMP threads ran can deadlock.
+        pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) \
+            if workers > 1 and len(todo) > 1 else None
+        try:
+            results = pool.map(_build_one, [config] * len(todo), [out] * len(todo), todo) if pool else \
+                (_build_one(config, out, i) for i in todo)
+            for index, reason in zip(todo, results):
+                if reason is None:
                     summary["built"] += 1
-                except Exception as exc:  # one bad shape must not end a long build
-                    reason = str(exc) or type(exc).__name__
-                    summary["skipped"][item.id] = reason
-                    log.warning("skipped %s: %s", item.id, reason)
-                    bar.update(1)
-                    continue
-            index_lines.append(json.dumps({"id": item.id, "file": str(path.relative_to(out)), "index": index}))
-            bar.update(1)
+                else:
+                    summary["skipped"][items[index].id] = reason
+                    log.warning("skipped %s: %s", items[index].id, reason)
+                bar.update(1)
+        finally:
+            if pool:
+                pool.shutdown()
+    index_lines = [json.dumps({"id": item.id, "file": str(shape_file(out, item.id).relative_to(out)), "index": i})
+                   for i, item in enumerate(items) if shape_file(out, item.id).exists()]
     summary["seconds"] = round(time.perf_counter() - start, 3)
     (out / "index.jsonl").write_text("".join(line + "\n" for line in index_lines))
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
