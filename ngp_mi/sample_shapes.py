@@ -62,7 +62,7 @@ def sample_shapes(run: str | Path, out: str | Path, num: int = 16, seed: int = 0
     if interpolate is not None:
         a, b = latent(interpolate[0], z_dim), latent(interpolate[1], z_dim)
         ts = np.linspace(0.0, 1.0, steps)
-        jobs = [(f"{interpolate[0]}→{interpolate[1]} t={t:.2f}", slerp(a, b, float(t))) for t in ts]
+        jobs = [(f"{interpolate[0]}->{interpolate[1]} t={t:.2f}", slerp(a, b, float(t))) for t in ts]
     else:
         jobs = [(f"seed {seed + k}", latent(seed + k, z_dim)) for k in range(num)]
     out = Path(out)

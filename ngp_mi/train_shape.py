@@ -129,7 +129,11 @@ def autoencoder_iou(model: ShapeModel, data: ShapeDataset, resolution: int) -> f
 
 def sample_metrics(model: ShapeModel, reference: list[np.ndarray], held_out: list[np.ndarray], count: int,
                    resolution: int, seed: int) -> dict[str, Any]:
-    """COV / MMD of ``count`` generated shapes against the training shapes' surface points."""
+    """COV / MMD of ``count`` generated shapes against the training shapes' surface points.
+
+    Also the same metrics of the held-out real shapes, and of as many generated shapes as there are
+    held-out ones (coverage grows with the number of shapes matched, so only equal sizes compare).
+    """
     rng = np.random.default_rng(seed)
     z = torch.randn(count, model.config.z_dim, generator=torch.Generator().manual_seed(seed))
     clouds, empty = [], 0
@@ -140,11 +144,13 @@ def sample_metrics(model: ShapeModel, reference: list[np.ndarray], held_out: lis
             continue
         clouds.append(surface_samples(mesh, len(reference[0]), rng))
     result: dict[str, Any] = {"samples": count, "empty_samples": empty, "resolution": resolution}
-    if clouds:
-        result.update(coverage_mmd(chamfer_matrix(clouds, reference)))
-    if held_out:
-        real = coverage_mmd(chamfer_matrix(held_out, reference))
-        result["held_out_real"] = real
+    matrix = chamfer_matrix(clouds, reference) if clouds else None
+    if matrix is not None:
+        result.update(coverage_mmd(matrix))
+    if held_out:  # what real, unseen shapes score; COV depends on the set size, so compare equal sizes
+        result["held_out_real"] = {"shapes": len(held_out), **coverage_mmd(chamfer_matrix(held_out, reference))}
+        if matrix is not None and len(matrix) >= len(held_out):
+            result["first_samples_as_many"] = coverage_mmd(matrix[:len(held_out)])
     return result
 
 

@@ -27,13 +27,20 @@ def chamfer_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def chamfer_matrix(generated: Sequence[np.ndarray], reference: Sequence[np.ndarray]) -> np.ndarray:
-    """(G, R) Chamfer distances between every generated and every reference point cloud."""
-    ref = torch.as_tensor(np.stack(reference), dtype=torch.float32)
-    rows = []
-    for g in generated:
-        points = torch.as_tensor(g, dtype=torch.float32)[None].expand(len(ref), -1, -1)
-        rows.append(chamfer_distance(points, ref))
-    return torch.stack(rows).numpy().astype(np.float64)
+    """(G, R) Chamfer distances (as :func:`chamfer_distance`) between every generated and reference cloud.
+
+    Nearest neighbours come from one k-d tree per cloud (scipy), O(N log N) per pair instead of the
+    N² distances of a dense block: 64 × 256 pairs of 2048-point clouds take seconds, not minutes.
+    """
+    from scipy.spatial import cKDTree
+
+    gen_trees = [cKDTree(np.asarray(g, np.float64)) for g in generated]
+    ref_trees = [cKDTree(np.asarray(r, np.float64)) for r in reference]
+    out = np.empty((len(generated), len(reference)))
+    for i, (g, gt) in enumerate(zip(generated, gen_trees)):
+        for j, (r, rt) in enumerate(zip(reference, ref_trees)):
+            out[i, j] = np.mean(rt.query(g, workers=-1)[0] ** 2) + np.mean(gt.query(r, workers=-1)[0] ** 2)
+    return out
 
 
 def coverage_mmd(distances: np.ndarray) -> dict[str, float]:
