@@ -27,7 +27,6 @@ import dataclasses
 import json
 import os
 import time
-import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +36,7 @@ import torch.distributed as dist
 from torch.utils.data import default_collate
 
 from ngp_mi.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint
+from ngp_mi.config import read_recipe, training_device
 from ngp_mi.data.datasets import DepthDataset, ReflectanceMapDataset
 from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
 from ngp_mi.models.maps import MapsConfig, MapsModel
@@ -46,14 +46,7 @@ NETWORKS = ("G_n", "G_da", "G_depth", "E_da", "D_n", "D_da", "D_df", "D_depth", 
 
 
 def load_config(path: str | Path) -> dict[str, Any]:
-    path = Path(path)
-    try:
-        config = tomllib.loads(path.read_text())
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise ValueError(f"{path}: cannot read the training config ({exc})") from None
-    for table in ("data", "model", "train"):
-        if table not in config:
-            raise ValueError(f"{path}: missing table [{table}]")
+    config = read_recipe(path, ("data", "model", "train"))
     fields = {f.name for f in dataclasses.fields(MapsConfig)}
     unknown = set(config["model"]) - fields
     if unknown:
@@ -107,17 +100,6 @@ def _grid(visuals: dict[str, torch.Tensor]) -> np.ndarray:
         image = np.repeat(image, 3, -1) if image.shape[-1] == 1 else image
         tiles.append((image * 255).round().astype(np.uint8))
     return contact_sheet(tiles, list(visuals), columns=len(tiles))
-
-
-def training_device(name: str, local_rank: int = 0) -> torch.device:
-    """``auto`` → the process's GPU (``cuda:LOCAL_RANK``) when CUDA works, else the CPU."""
-    if name not in ("auto", "cpu", "cuda"):
-        raise ValueError(f"[train] device must be 'auto', 'cpu' or 'cuda', got {name!r}")
-    if name == "cpu" or (name == "auto" and not torch.cuda.is_available()):
-        return torch.device("cpu")
-    if not torch.cuda.is_available():
-        raise ValueError("[train] device = 'cuda' but torch sees no CUDA device")
-    return torch.device("cuda", local_rank % torch.cuda.device_count())
 
 
 def to_device(batch: dict[str, Any], device: torch.device) -> dict[str, Any]:

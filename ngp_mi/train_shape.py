@@ -26,7 +26,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
-import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -34,11 +33,11 @@ import numpy as np
 import torch
 
 from ngp_mi.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint
-from ngp_mi.data.shapes import ShapeDataConfig, ShapeDataset, build_shape_dataset, surface_samples
+from ngp_mi.config import read_recipe, training_device
+from ngp_mi.data.shapes import ShapeDataConfig, ShapeDataset, build_shape_dataset
 from ngp_mi.eval.shape_metrics import chamfer_matrix, coverage_mmd
-from ngp_mi.geometry.occupancy import voxel_iou
+from ngp_mi.geometry.occupancy import surface_samples, voxel_iou
 from ngp_mi.models.shape import ShapeConfig, ShapeModel
-from ngp_mi.train_maps import training_device
 
 TRAIN_DEFAULTS = {"gan_iterations": 0, "batch_size": 16, "points_per_shape": 0, "gan_batch_size": 64, "seed": 0,
                   "out": "outputs/train/shape", "log_every": 10, "checkpoint_every": 500, "device": "auto",
@@ -46,14 +45,7 @@ TRAIN_DEFAULTS = {"gan_iterations": 0, "batch_size": 16, "points_per_shape": 0, 
 
 
 def load_config(path: str | Path) -> dict[str, Any]:
-    path = Path(path)
-    try:
-        config = tomllib.loads(path.read_text())
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise ValueError(f"{path}: cannot read the training config ({exc})") from None
-    for table in ("data", "model", "train"):
-        if table not in config:
-            raise ValueError(f"{path}: missing table [{table}]")
+    config = read_recipe(path, ("data", "model", "train"))
     checks = {"data": {f.name for f in dataclasses.fields(ShapeDataConfig)} | {"cache_dir", "held_out", "workers"},
               "model": {f.name for f in dataclasses.fields(ShapeConfig)},
               "train": set(TRAIN_DEFAULTS) | {"stages"}}

@@ -31,7 +31,8 @@ import torch
 from ngp_mi.geometry.families import FAMILIES, generate
 from ngp_mi.geometry.loaders import MESH_SUFFIXES, find_meshes, load_mesh
 from ngp_mi.geometry.mesh import TriangleMesh
-from ngp_mi.geometry.occupancy import Inside, grid_points, mesh_inside, mesh_occupancy_grid, sample_occupancy_points
+from ngp_mi.geometry.occupancy import (Inside, grid_points, mesh_inside, mesh_occupancy_grid, sample_occupancy_points,
+                                      surface_samples)
 
 log = logging.getLogger("ngp_mi.shapes")
 
@@ -91,18 +92,6 @@ def shape_items(source: str, num_shapes: int, seed: int = 0) -> list[ShapeItem]:
             return mesh, mesh_inside(mesh), lambda r: mesh_occupancy_grid(mesh, r)
         return ShapeItem(shape_id, load)
     return [from_file(i, p) for i, p in found[:num_shapes]]
-
-
-def surface_samples(mesh: TriangleMesh, count: int, rng: np.random.Generator) -> np.ndarray:
-    """``count`` points uniformly (by area) on the mesh, float32."""
-    tri = mesh.vertices[mesh.faces].astype(np.float64)
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    face = rng.choice(len(tri), count, p=area / area.sum())
-    u, v = rng.random(count), rng.random(count)
-    flip = u + v > 1
-    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
-    t = tri[face]
-    return (t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])).astype(np.float32)
 
 
 def shape_file(root: Path, shape_id: str) -> Path:

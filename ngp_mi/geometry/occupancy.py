@@ -68,18 +68,27 @@ def mesh_inside(mesh: TriangleMesh) -> Inside:
     return lambda points: winding_numbers(mesh.vertices, mesh.faces, points) > 0.5
 
 
-def _surface_samples(mesh: TriangleMesh, spacing: float, rng: np.random.Generator) -> np.ndarray:
-    """Points on the mesh with about 16 per ``spacing``² of area, plus every vertex."""
-    tri = mesh.vertices[mesh.faces]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    count = int(min(4_000_000, max(1000, 16 * area.sum() / spacing ** 2)))
+def triangle_areas(mesh: TriangleMesh) -> np.ndarray:
+    tri = mesh.vertices[mesh.faces].astype(np.float64)
+    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+
+
+def surface_samples(mesh: TriangleMesh, count: int, rng: np.random.Generator) -> np.ndarray:
+    """``count`` points uniformly (by area) on the mesh, float32."""
+    tri = mesh.vertices[mesh.faces].astype(np.float64)
+    area = triangle_areas(mesh)
     face = rng.choice(len(tri), count, p=area / area.sum()) if area.sum() > 0 else rng.integers(0, len(tri), count)
     u, v = rng.random(count), rng.random(count)
     flip = u + v > 1
     u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
     t = tri[face]
-    samples = t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])
-    return np.concatenate([samples, mesh.vertices])
+    return (t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])).astype(np.float32)
+
+
+def _band_samples(mesh: TriangleMesh, spacing: float, rng: np.random.Generator) -> np.ndarray:
+    """Points on the mesh with about 16 per ``spacing``² of area, plus every vertex."""
+    count = int(min(4_000_000, max(1000, 16 * triangle_areas(mesh).sum() / spacing ** 2)))
+    return np.concatenate([surface_samples(mesh, count, rng), mesh.vertices])
 
 
 def mesh_occupancy_grid(mesh: TriangleMesh, resolution: int, half: float = DOMAIN, seed: int = 0,
@@ -96,7 +105,7 @@ def mesh_occupancy_grid(mesh: TriangleMesh, resolution: int, half: float = DOMAI
     rng = np.random.default_rng(seed)
     centres = grid_points(resolution, half)
     cell = 2 * half / resolution
-    samples = _surface_samples(mesh, cell, rng)
+    samples = _band_samples(mesh, cell, rng)
     index = np.floor((samples + half) / cell).astype(np.int64)
     index = index[np.all((index >= 0) & (index < resolution), axis=1)]
     band = np.zeros((resolution,) * 3, bool)
