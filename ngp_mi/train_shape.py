@@ -88,10 +88,9 @@ def stage_at(stages: list[list[int]], step: int) -> int:
     return stages[-1][0]
 
 
-def ae_batch(datasets: dict[int, ShapeDataset], resolution: int, step: int, batch_size: int, points: int,
+def ae_batch(data: ShapeDataset, resolution: int, step: int, batch_size: int, points: int,
              seed: int, device: torch.device) -> tuple[torch.Tensor, ...]:
     """Deterministic batch: shapes by a seeded permutation per epoch, a random subset of their points."""
-    data = datasets[resolution]
     per_epoch = max(1, len(data) // batch_size)
     epoch, offset = divmod(step, per_epoch)
     order = torch.randperm(len(data), generator=torch.Generator().manual_seed(seed + epoch))
@@ -104,7 +103,7 @@ def ae_batch(datasets: dict[int, ShapeDataset], resolution: int, step: int, batc
         if 0 < points < len(p):
             pick = torch.randperm(len(p))[:points].numpy()
             p, o = p[pick], o[pick]
-        voxels.append(torch.from_numpy(data.voxels(i)).float()[None])
+        voxels.append(data.voxel_tensor(i))
         pts.append(torch.from_numpy(p))
         occ.append(torch.from_numpy(o).float()[:, None])
     return tuple(torch.stack(t).to(device) for t in (voxels, pts, occ))
@@ -114,8 +113,7 @@ def autoencoder_iou(model: ShapeModel, data: ShapeDataset, resolution: int) -> f
     """Mean voxel IoU of decode(encode(voxels)) against the voxels, at the voxel grid's cell centres."""
     if data.config["voxel_resolution"] != resolution:
         raise ValueError("autoencoder_iou: the IoU grid is the voxel grid")
-    voxels = torch.stack([torch.from_numpy(data.voxels(i)).float()[None] for i in range(len(data))])
-    codes = model.encode(voxels.to(model.device))
+    codes = model.encode(data.all_voxels().to(model.device))
     return float(np.mean([voxel_iou(model.occupancy_grid(c, resolution), data.voxels(i)) for i, c in enumerate(codes)]))
 
 
@@ -130,7 +128,7 @@ def sample_metrics(model: ShapeModel, reference: list[np.ndarray], held_out: lis
     z = torch.randn(count, model.config.z_dim, generator=torch.Generator().manual_seed(seed))
     clouds, empty = [], 0
     for i in range(count):
-        mesh = model.shape(z[i], resolution, coarse=min(32, resolution)).mesh
+        mesh = model.shape(z[i], resolution).mesh
         if mesh is None:
             empty += 1
             continue
@@ -158,10 +156,10 @@ def train_shape(config_path: str | Path, log=print) -> Path:
     dcfg = data_config(config["data"])
     cache = Path(config["data"].get("cache_dir", "outputs/data/shape"))
     build_shape_dataset(dcfg, cache, progress=True, workers=int(config["data"].get("workers", 1)))
-    all_ids = ShapeDataset(cache, dcfg.resolutions[0]).ids
+    all_ids = [r["id"] for r in ShapeDataset.index(cache)]
     train_ids, held_ids = split_ids(all_ids, int(config["data"].get("held_out", 0)))
-    datasets = {r: ShapeDataset(cache, r, train_ids) for r in dcfg.resolutions}
-    held = ShapeDataset(cache, dcfg.resolutions[0], held_ids) if held_ids else None
+    data = ShapeDataset(cache, ids=train_ids)  # every resolution's points; batches pick the stage's
+    held = ShapeDataset(cache, ids=held_ids) if held_ids else None
 
     torch.manual_seed(seed)
     model = ShapeModel(model_config(config["model"], dcfg)).to(device)
@@ -198,13 +196,12 @@ def train_shape(config_path: str | Path, log=print) -> Path:
         torch.manual_seed(seed * 1_000_003 + step)
         if step < ae_total:
             resolution = stage_at(stages, step)
-            batch = ae_batch(datasets, resolution, step, int(train["batch_size"]), int(train["points_per_shape"]),
+            batch = ae_batch(data, resolution, step, int(train["batch_size"]), int(train["points_per_shape"]),
                              seed, device)
             losses = {"phase": "ae", "resolution": resolution, **model.ae_step(*batch)}
         else:
             if codes is None:
-                codes = model.encode(torch.stack([torch.from_numpy(datasets[dcfg.resolutions[0]].voxels(i)).float()[None]
-                                                  for i in range(len(train_ids))]).to(device))
+                codes = model.encode(data.all_voxels().to(device))
             pick = torch.randint(len(codes), (int(train["gan_batch_size"]),), device=codes.device)
             losses = {"phase": "gan", **model.gan_step(codes[pick])}
         step += 1
@@ -213,7 +210,7 @@ def train_shape(config_path: str | Path, log=print) -> Path:
             record({"step": step, "time": round(time.perf_counter() - start, 3),
                     "it_per_s": round((step - first) / (time.perf_counter() - start), 3), **losses})
         if step == ae_total:
-            iou = {"train": autoencoder_iou(model, datasets[dcfg.resolutions[0]], dcfg.voxel_resolution)}
+            iou = {"train": autoencoder_iou(model, data, dcfg.voxel_resolution)}
             if held is not None:
                 iou["held_out"] = autoencoder_iou(model, held, dcfg.voxel_resolution)
             metrics["autoencoder_iou"] = {**iou, "grid": dcfg.voxel_resolution, "step": step}
@@ -224,7 +221,6 @@ def train_shape(config_path: str | Path, log=print) -> Path:
             save_checkpoint(out, step, modules, {**model.optimizer_state(), "config": json.dumps(config)})
     bar.close()
     if total > ae_total and "samples" not in metrics:
-        data = datasets[dcfg.resolutions[0]]
         reference = [data.surface(i) for i in range(len(data))]
         held_clouds = [held.surface(i) for i in range(len(held))] if held is not None else []
         metrics["samples"] = sample_metrics(model, reference, held_clouds, int(train["eval_samples"]),

@@ -201,11 +201,8 @@ class ShapeDataset(torch.utils.data.Dataset):
 
     def __init__(self, root: str | Path, resolution: int | None = None, ids: list[str] | None = None):
         self.root = Path(root)
-        index = self.root / "index.jsonl"
-        if not index.exists():
-            raise FileNotFoundError(f"{index}: not a shape dataset (build it with build_shape_dataset / train shape)")
+        records = self.index(self.root)
         self.config = json.loads((self.root / "dataset.json").read_text())
-        records = [json.loads(line) for line in index.read_text().splitlines() if line.strip()]
         if ids is not None:
             wanted = set(ids)
             records = [r for r in records if r["id"] in wanted]
@@ -217,12 +214,28 @@ class ShapeDataset(torch.utils.data.Dataset):
             raise ValueError(f"{self.root}: no points at resolution {self.resolution}; built: {self.config['resolutions']}")
         self._arrays = [dict(np.load(self.root / r["file"])) for r in records]
 
+    @staticmethod
+    def index(root: str | Path) -> list[dict[str, Any]]:
+        """The records of ``index.jsonl`` (id, file, index), without loading any shape."""
+        index = Path(root) / "index.jsonl"
+        if not index.exists():
+            raise FileNotFoundError(f"{index}: not a shape dataset (build it with build_shape_dataset / train shape)")
+        return [json.loads(line) for line in index.read_text().splitlines() if line.strip()]
+
     def __len__(self) -> int:
         return len(self.ids)
 
     def voxels(self, i: int) -> np.ndarray:
         v = self.config["voxel_resolution"]
         return np.unpackbits(self._arrays[i]["voxels"])[:v ** 3].reshape(v, v, v).astype(bool)
+
+    def voxel_tensor(self, i: int) -> torch.Tensor:
+        """The encoder's input: (1, V, V, V) float32."""
+        return torch.from_numpy(self.voxels(i)).float()[None]
+
+    def all_voxels(self) -> torch.Tensor:
+        """(N, 1, V, V, V) float32 of every shape."""
+        return torch.stack([self.voxel_tensor(i) for i in range(len(self))])
 
     def points(self, i: int, resolution: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         r = resolution or self.resolution
@@ -233,6 +246,6 @@ class ShapeDataset(torch.utils.data.Dataset):
 
     def __getitem__(self, i: int) -> dict[str, Any]:
         points, occ = self.points(i)
-        return {"voxels": torch.from_numpy(self.voxels(i)).float()[None], "points": torch.from_numpy(points),
+        return {"voxels": self.voxel_tensor(i), "points": torch.from_numpy(points),
                 "occ": torch.from_numpy(occ).float()[:, None], "surface": torch.from_numpy(self.surface(i)),
                 "index": i}
