@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
 
@@ -45,6 +46,12 @@ def list_checkpoints(root: str | Path) -> list[Path]:
     """Complete checkpoints under ``root``, oldest first."""
     root = Path(root)
     return sorted(p for p in root.glob("ckpt-*") if (p / "state.pt").exists() and (p / "weights.safetensors").exists())
+
+
+def saved_modules(path: str | Path) -> set[str]:
+    """Names of the modules a checkpoint holds weights for (read from the file's header only)."""
+    with safe_open(Path(path) / "weights.safetensors", framework="pt") as f:
+        return {key.split(".", 1)[0] for key in f.keys()}
 
 
 def load_checkpoint(path: str | Path, modules: dict[str, torch.nn.Module]) -> dict[str, Any]:

@@ -39,7 +39,7 @@ def _render_dataset(args: argparse.Namespace) -> int:
     config = DatasetConfig(source=args.source, num_shapes=args.num_shapes, views=args.views, resolution=args.res,
                            channels=tuple(c.strip() for c in args.channels.split(",") if c.strip()),
                            real_spp=args.real_spp, lights=args.lights, seed=args.seed, compression=args.compression,
-                           half=args.half)
+                           half=args.half, coarse_shapes=args.coarse_shapes, coarse_resolution=args.coarse_resolution)
     summary = render_dataset(config, args.out, shard=parse_shard(args.shard), strict=args.strict,
                              progress=not args.quiet)
     print(f"render-dataset: {summary['views_rendered']} views rendered ({summary['views_per_second']} views/s), "
@@ -55,7 +55,8 @@ def _compare(args: argparse.Namespace) -> int:
     config = CompareConfig(source=args.source, num_shapes=args.num_shapes, views=args.views, resolution=args.res,
                            light_setups=tuple(args.lights.split(",")),
                            spp_ladder=tuple(int(x) for x in args.spp_ladder.split(",")),
-                           reference_spp=args.reference_spp, seed=args.seed, maps_checkpoint=args.maps_checkpoint)
+                           reference_spp=args.reference_spp, seed=args.seed, maps_checkpoint=args.maps_checkpoint,
+                           inception_weights=args.inception_weights)
     run_compare(config, args.out)
     return 0
 
@@ -84,7 +85,8 @@ def _sample_shapes(args: argparse.Namespace) -> int:
 def _evaluate(args: argparse.Namespace) -> int:
     from ngp_mi.eval.maps_eval import evaluate_maps
 
-    result = evaluate_maps(args.run, args.data, args.out or f"{args.run}/eval", coarse_sigma=args.coarse_sigma)
+    result = evaluate_maps(args.run, args.data, args.out or f"{args.run}/eval", coarse_sigma=args.coarse_sigma,
+                           coarse_data=args.coarse_data)
     print(json.dumps(result, indent=1))
     return 0
 
@@ -140,24 +142,33 @@ def build_parser() -> argparse.ArgumentParser:
     data.add_argument("--compression", default="zip", choices=["zip", "zstd", "piz", "none"], help="EXR compression")
     data.add_argument("--half", action="store_true", help="store all channels but depth as 16-bit floats "
                                                           "(half the size, ~40%% faster to write)")
+    data.add_argument("--coarse-shapes", metavar="RUN", help="a `train shape` run: render each shape as its "
+                      "autoencoder reconstructs it (NGP's coarse shapes; ids and views pair with the detailed ones)")
+    data.add_argument("--coarse-resolution", type=int, default=64, help="marching-cubes grid of --coarse-shapes "
+                                                                        "(default: %(default)s)")
     data.add_argument("--strict", action="store_true", help="exit non-zero if any shape was skipped")
     data.add_argument("--quiet", action="store_true", help="no progress bar")
     data.set_defaults(func=_render_dataset)
 
     compare = sub.add_parser("compare", help="time and score deferred shading against path-traced references",
                              description="Render, time and score path tracing at a ladder of spp and R_diff / R_BP "
-                                         "on ground-truth maps against a high-spp path-traced reference; write "
+                                         "on ground-truth maps (and NGP on generated maps) against a high-spp "
+                                         "path-traced reference; write "
                                          "images, a speed-accuracy plot, results.json and report.html.")
     compare.add_argument("--source", default="chair", help="chair | car | mesh folder / file | scene .xml")
     compare.add_argument("--out", required=True, help="output folder")
     compare.add_argument("--num-shapes", type=int, default=3, help="shapes (default: %(default)s)")
     compare.add_argument("--views", type=int, default=2, help="views per shape (default: %(default)s)")
     compare.add_argument("--res", type=int, default=128, help="image size (default: %(default)s)")
-    compare.add_argument("--lights", default="rig,random", help="light setups, from rig,random (default: %(default)s)")
+    compare.add_argument("--lights", default="rig,random", help="light setups, from rig,random,rig+random (the rig plus added lights: "
+                                                      "NGP-plus) (default: %(default)s)")
     compare.add_argument("--spp-ladder", default="1,4,16,64,256", help="path-tracing spp to compare (default: %(default)s)")
     compare.add_argument("--reference-spp", type=int, default=1024, help="spp of the reference (default: %(default)s)")
     compare.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
-    compare.add_argument("--maps-checkpoint", help="a `train maps` run folder: adds NGP-BP on generated maps")
+    compare.add_argument("--maps-checkpoint", help="a `train maps` run folder: adds NGP-BP, NGP, NGP-plus and "
+                                                   "the ablations on generated maps")
+    compare.add_argument("--inception-weights", help="local inception-2015-12-05.pt (TorchScript): adds FID / KID; "
+                                                     "never downloaded")
     compare.set_defaults(func=_compare)
 
     train = sub.add_parser("train", help="train a stage of NGP from a config (train/*.toml); resumes automatically",
@@ -192,7 +203,10 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--run", required=True, help="training output folder (with ckpt-*)")
     evaluate.add_argument("--data", required=True, help="held-out render-dataset folder")
     evaluate.add_argument("--out", help="output folder (default: RUN/eval)")
-    evaluate.add_argument("--coarse-sigma", type=float, default=2.0, help="smoothing of the coarse depth, px")
+    evaluate.add_argument("--coarse-sigma", type=float, default=2.0, help="smoothing of the coarse depth, px "
+                                                                          "(without --coarse-data)")
+    evaluate.add_argument("--coarse-data", help="the same shapes and views rendered with `render-dataset "
+                                                "--coarse-shapes SHAPE_RUN`: coarse depth from the shape autoencoder")
     evaluate.set_defaults(func=_evaluate)
     return parser
 

@@ -4,10 +4,21 @@ The config (TOML) has three tables:
 
 * ``[data]`` — ``maps`` and ``depth``: ``render-dataset`` folders of real reflectance maps and of the
   depth maps to decorate; when absent, a dataset of ``source`` (``num_shapes`` × ``views`` at
-  ``resolution``) is rendered into ``cache_dir`` first (and reused).
+  ``resolution``) is rendered into ``cache_dir`` first (and reused). With ``coarse_shapes`` (a
+  ``train shape`` run), the depth maps are those of the same shapes reconstructed by its
+  autoencoder (``<cache_dir>-coarse``, marching cubes at ``coarse_resolution``): coarse shapes,
+  as NGP decorates.
 * ``[model]`` — fields of :class:`~ngp_mi.models.maps.MapsConfig`.
 * ``[train]`` — ``iterations``, ``batch_size``, ``seed``, ``out``, ``log_every``, ``image_every``,
   ``checkpoint_every``, ``device`` (``"auto"``: CUDA when available, else CPU; or ``"cpu"`` / ``"cuda"``).
+* ``[specular]`` (optional) — the second stage, the realistic specular generator G_sp^real
+  (:mod:`ngp_mi.models.specular`), trained for ``iterations`` more steps with the map networks
+  fixed, as the paper orders it (maps first, then G_sp^real): ``real`` is a folder of real images
+  (photographs or a ``render-dataset`` folder with path-traced images); when absent, ``num_shapes``
+  × ``views`` path-traced images (``real_spp``) of ``[data] source`` are rendered into
+  ``<cache_dir>-real`` with other seeds than the maps (the domains stay unpaired). Other keys are
+  fields of :class:`~ngp_mi.models.specular.SpecularConfig`. A run whose checkpoints predate the
+  table resumes with its map networks and starts the stage.
 
 Outputs under ``out``: ``log.jsonl`` (losses per logged step; TensorBoard too if installed),
 ``images/step-*.png`` (every intermediate map), ``ckpt-*`` (see :mod:`ngp_mi.checkpoint`). A run
@@ -35,22 +46,28 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import default_collate
 
-from ngp_mi.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint
+from ngp_mi.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint, saved_modules
 from ngp_mi.config import read_recipe, training_device
-from ngp_mi.data.datasets import DepthDataset, ReflectanceMapDataset
+from ngp_mi.data.datasets import DepthDataset, ImageFolderDataset, ReflectanceMapDataset
 from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
 from ngp_mi.models.maps import MapsConfig, MapsModel
+from ngp_mi.models.specular import SpecularConfig, SpecularModel
 from ngp_mi.viz import contact_sheet, save_png
 
 NETWORKS = ("G_n", "G_da", "G_depth", "E_da", "D_n", "D_da", "D_df", "D_depth", "D_noc")
+SPECULAR_NETWORKS = ("G_sp", "F_sp", "D_real", "D_dfr")
+SPECULAR_DATA_KEYS = ("iterations", "real", "real_spp", "num_shapes", "views")
 
 
 def load_config(path: str | Path) -> dict[str, Any]:
     config = read_recipe(path, ("data", "model", "train"))
-    fields = {f.name for f in dataclasses.fields(MapsConfig)}
-    unknown = set(config["model"]) - fields
-    if unknown:
-        raise ValueError(f"{path}: unknown [model] field(s) {sorted(unknown)}; known: {sorted(fields)}")
+    for table, known in (("model", {f.name for f in dataclasses.fields(MapsConfig)}),
+                         ("specular", {f.name for f in dataclasses.fields(SpecularConfig)} | set(SPECULAR_DATA_KEYS))):
+        unknown = set(config.get(table, {})) - known
+        if unknown:
+            raise ValueError(f"{path}: unknown [{table}] field(s) {sorted(unknown)}; known: {sorted(known)}")
+    if "specular" in config and int(config["specular"].get("iterations", 0)) < 1:
+        raise ValueError(f"{path}: [specular] iterations must be >= 1")
     return config
 
 
@@ -62,19 +79,51 @@ def model_config(config: dict[str, Any]) -> MapsConfig:
     return MapsConfig(**values)
 
 
+def specular_config(config: dict[str, Any]) -> SpecularConfig | None:
+    if "specular" not in config:
+        return None
+    values = {k: v for k, v in config["specular"].items() if k not in SPECULAR_DATA_KEYS}
+    if "rf_image" in values:
+        values["rf_image"] = tuple(values["rf_image"])
+    return SpecularConfig(**values)
+
+
 def prepare_data(data: dict[str, Any], rank: int) -> tuple[Path, Path]:
     """The (maps, depth) dataset folders, rendering a cached one from ``source`` when not given."""
     if "maps" in data and "depth" in data:
         return Path(data["maps"]), Path(data["depth"])
     cache = Path(data.get("cache_dir", "outputs/data/maps"))
+    depth_cache = Path(f"{cache}-coarse") if "coarse_shapes" in data else cache
     if rank == 0:
-        render_dataset(DatasetConfig(source=data.get("source", "chair"), num_shapes=data.get("num_shapes", 16),
-                                     views=data.get("views", 8), resolution=data.get("resolution", 64),
-                                     channels=("depth", "normal", "albedo", "noc", "mask"), seed=data.get("seed", 0)),
-                       cache, progress=False)
+        config = DatasetConfig(source=data.get("source", "chair"), num_shapes=data.get("num_shapes", 16),
+                               views=data.get("views", 8), resolution=data.get("resolution", 64),
+                               channels=("depth", "normal", "albedo", "noc", "mask"), seed=data.get("seed", 0))
+        render_dataset(config, cache, progress=False)
+        if "coarse_shapes" in data:  # the paper decorates G_shape's coarse shapes, not the detailed ones
+            if not Path(data["coarse_shapes"]).is_dir():
+                raise ValueError(f"[data] coarse_shapes = {data['coarse_shapes']!r}: no such `train shape` run "
+                                 "(train it first: ngp-mi train shape --config train/shape_cpu.toml)")
+            render_dataset(dataclasses.replace(config, channels=("depth", "mask"), coarse_shapes=data["coarse_shapes"],
+                                               coarse_resolution=data.get("coarse_resolution", 64)),
+                           depth_cache, progress=False)
     if dist.is_initialized():
         dist.barrier()
-    return cache, cache
+    return cache, depth_cache
+
+
+def prepare_real_images(data: dict[str, Any], specular: dict[str, Any], rank: int) -> Path:
+    """The real-image folder of the specular stage, rendering path-traced images when not given."""
+    if "real" in specular:
+        return Path(specular["real"])
+    cache = Path(str(data.get("cache_dir", "outputs/data/maps")) + "-real")
+    if rank == 0:
+        render_dataset(DatasetConfig(source=data.get("source", "chair"), num_shapes=specular.get("num_shapes", 16),
+                                     views=specular.get("views", 8), resolution=data.get("resolution", 64),
+                                     channels=("mask",), real_spp=specular.get("real_spp", 64),
+                                     seed=data.get("seed", 0) + 1), cache, progress=False)
+    if dist.is_initialized():
+        dist.barrier()
+    return cache
 
 
 class _Batches:
@@ -137,48 +186,74 @@ def train_maps(config_path: str | Path, log=print) -> Path:
     torch.manual_seed(seed)  # identical initial weights on every rank
     model = MapsModel(model_config(config)).to(device)  # in place: the optimisers keep their parameters
     modules = {name: getattr(model, name) for name in NETWORKS}
+    optimizers = {"opt_G": model.opt_G, "opt_D": model.opt_D}
+    spec_config = specular_config(config)
+    specular, real_batches = None, None
+    if spec_config is not None:
+        specular = SpecularModel(spec_config).to(device)
+        real_root = prepare_real_images(config["data"], config["specular"], rank)
+        real_batches = _Batches(ImageFolderDataset(real_root, size=config["data"].get("resolution", 64), linear=True),
+                                train["batch_size"], seed + 2 * 10 ** 6, rank, world)
     step = 0
     checkpoints = list_checkpoints(out)
     if checkpoints:
+        has_specular = specular is not None and "G_sp" in saved_modules(checkpoints[-1])
+        if has_specular:
+            modules.update({name: getattr(specular, name) for name in SPECULAR_NETWORKS})
+            optimizers.update(opt_sp_G=specular.opt_G, opt_sp_D=specular.opt_D)
         state = load_checkpoint(checkpoints[-1], modules)
-        model.opt_G.load_state_dict(state["opt_G"])
-        model.opt_D.load_state_dict(state["opt_D"])
+        for key, optimizer in optimizers.items():
+            optimizer.load_state_dict(state[key])
         step = int(state["step"])
         if rank == 0:
             log(f"train maps: resuming from {checkpoints[-1]} (step {step})")
+    if specular is not None:
+        modules.update({name: getattr(specular, name) for name in SPECULAR_NETWORKS})
+        optimizers.update(opt_sp_G=specular.opt_G, opt_sp_D=specular.opt_D)
     if rank == 0:
         log(f"train maps: {world} process(es) on {device}")
     if world > 1:
         model.gradient_hook = average_gradients
+        if specular is not None:
+            specular.gradient_hook = average_gradients
 
-    iterations = int(train["iterations"])
+    maps_iterations = int(train["iterations"])
+    iterations = maps_iterations + (int(config["specular"]["iterations"]) if specular is not None else 0)
     writer = _tensorboard(out) if rank == 0 else None
     bar = tqdm(total=iterations, initial=step, unit="it", disable=rank != 0, desc="train maps")
     start, first = time.perf_counter(), step
     while step < iterations:
         torch.manual_seed(seed * 1_000_003 + step * world + rank)
-        losses = model.optimize(to_device(depth_batches(step), device), to_device(maps_batches(step), device))
+        depth_batch = to_device(depth_batches(step), device)
+        if step < maps_iterations:
+            stage, visuals = "maps", model
+            losses = model.optimize(depth_batch, to_device(maps_batches(step), device))
+        else:
+            stage, visuals = "specular", specular
+            losses = specular.optimize(model, depth_batch, real_batches(step).to(device))
         step += 1
         bar.update(1)
         if rank != 0:
             continue
-        if step % train.get("log_every", 10) == 0 or step == iterations:
-            record = {"step": step, "time": round(time.perf_counter() - start, 3),
+        last = step == iterations or step == maps_iterations
+        if step % train.get("log_every", 10) == 0 or last:
+            record = {"step": step, "stage": stage, "time": round(time.perf_counter() - start, 3),
                       "it_per_s": round((step - first) / (time.perf_counter() - start), 3), "world": world, **losses}
             with open(out / "log.jsonl", "a") as f:
                 f.write(json.dumps(record) + "\n")
             if writer is not None:
                 for key, value in losses.items():
-                    writer.add_scalar(f"loss/{key}", value, step)
-        if step % train.get("image_every", 100) == 0 or step == iterations:
-            save_png(out / "images" / f"step-{step:08d}.png", _grid(model.visuals))
-        if step % train.get("checkpoint_every", 500) == 0 or step == iterations:
-            save_checkpoint(out, step, modules, {"opt_G": model.opt_G.state_dict(), "opt_D": model.opt_D.state_dict(),
+                    writer.add_scalar(f"{stage}/{key}", value, step)
+        if step % train.get("image_every", 100) == 0 or last:
+            save_png(out / "images" / f"step-{step:08d}.png", _grid(visuals.visuals))
+        if step % train.get("checkpoint_every", 500) == 0 or last:
+            save_checkpoint(out, step, modules, {**{k: o.state_dict() for k, o in optimizers.items()},
                                                  "config": json.dumps(config)})
     bar.close()
     if dist.is_initialized():
         # Averaged gradients keep every rank's weights identical: check it.
-        checksum = torch.stack([p.detach().double().sum() for p in model.parameters()]).sum().reshape(1)
+        parameters = [p for m in modules.values() for p in m.parameters()]
+        checksum = torch.stack([p.detach().double().sum() for p in parameters]).sum().reshape(1)
         sums = [torch.zeros_like(checksum) for _ in range(world)]
         dist.all_gather(sums, checksum)
         if rank == 0:

@@ -4,6 +4,8 @@ import json
 import math
 
 import numpy as np
+import pytest
+import torch
 
 import ngp_mi.render.direct_unshadowed  # noqa: F401
 from ngp_mi.camera import Camera
@@ -46,15 +48,41 @@ def test_r_diff_over_pi_equals_unshadowed_lambertian_radiance():
     assert psnr(reference, ours / math.pi, interior.astype(float)) > 45.0
 
 
-def test_compare_with_trained_map_networks(tmp_path):
+def test_compare_with_trained_map_networks_and_fid(tmp_path):
     from test_train_maps import config as train_config
 
     from ngp_mi.train_maps import train_maps
 
-    run = train_maps(train_config(tmp_path, "run", iterations=2), log=lambda *_: None)
-    config = CompareConfig(num_shapes=1, views=1, resolution=32, light_setups=("rig",), spp_ladder=(4,),
-                           reference_spp=64, maps_checkpoint=str(run))
+    run = train_maps(train_config(tmp_path, "run", iterations=2), log=lambda *_: None)  # maps + specular stage
+    weights = tmp_path / "inception-2015-12-05.pt"
+    torch.jit.save(torch.jit.script(_FakeInception()), str(weights))
+    config = CompareConfig(num_shapes=1, views=2, resolution=32, light_setups=("rig", "rig+random"), spp_ladder=(4,),
+                           reference_spp=64, maps_checkpoint=str(run), inception_weights=str(weights))
     summary = run_compare(config, tmp_path / "cmp", log=lambda *_: None)
-    neural = [s for s in summary if s["kind"] == "neural"]
-    assert len(neural) == 2 and all(math.isfinite(s["psnr_linear"]) for s in neural)
-    assert "NGP-BP" in (tmp_path / "cmp" / "report.html").read_text()
+    neural = {s["method"].split(":")[0]: s for s in summary if s["kind"] == "neural"}
+    assert set(neural) == {"NGP-BP", "NGP w/o G_sp^real", "NGP", "NGP w/o G_n", "NGP w/o G_da", "NGP-plus"}
+    assert all(math.isfinite(s["psnr_linear"]) for s in neural.values())
+    assert neural["NGP-plus"]["images"] == 2 and neural["NGP"]["images"] == 4  # plus: only where lights are added
+    assert all(math.isfinite(s["fid"]) and math.isfinite(s["kid"]) for s in summary if s["kind"] != "reference")
+    report = (tmp_path / "cmp" / "report.html").read_text()
+    assert "NGP-plus" in report and "<th>fid</th>" in report
+
+
+class _FakeInception(torch.nn.Module):
+    """The call signature of the TorchScript Inception (uint8 NCHW in, features out), 6-d features."""
+
+    def forward(self, img: torch.Tensor, return_features: bool = False) -> torch.Tensor:
+        x = img.float() / 255
+        return torch.cat([x.mean((2, 3)), x.std((2, 3))], 1)
+
+
+def test_fid_without_weights_names_the_file(tmp_path):
+    from ngp_mi.eval.fid import InceptionFeatures
+
+    with pytest.raises(FileNotFoundError, match="inception-2015-12-05.pt"):
+        InceptionFeatures(tmp_path / "missing.pt")
+    (tmp_path / "bad.pt").write_text("not torchscript")
+    with pytest.raises(ValueError, match="bad.pt: not a TorchScript module"):
+        InceptionFeatures(tmp_path / "bad.pt")
+    with pytest.raises(ValueError, match="light setup must be one of"):
+        run_compare(CompareConfig(light_setups=("rig", "sun")), tmp_path / "x", log=lambda *_: None)

@@ -53,3 +53,40 @@ def test_evaluation_runs_and_reports_both_normal_methods(trained, tmp_path):
     # a few pixels wide, so even the sharp depth's finite differences are off by ~20 deg; 0.01 deg at 128 px.)
     sharp = evaluate_maps(run, data, tmp_path / "sharp", coarse_sigma=0.0)
     assert sharp["normal_error_deg"]["from_coarse_depth"]["median"] < errors["from_coarse_depth"]["median"]
+
+
+def test_a_coarse_dataset_pairs_by_shape_and_view(trained, tmp_path):
+    """With the detailed views themselves as the "coarse" set the result equals the unsmoothed depth's;
+    a coarse set that lacks a view is refused with the view named."""
+    from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
+
+    run, data = trained
+    sharp = evaluate_maps(run, data, tmp_path / "sharp", coarse_sigma=0.0, latent_samples=2)
+    paired = evaluate_maps(run, data, tmp_path / "paired", coarse_data=data, latent_samples=2)
+    assert paired["coarse_overlap"] == pytest.approx(1.0)
+    for method in ("G_n", "from_coarse_depth"):
+        assert paired["normal_error_deg"][method]["mean"] == pytest.approx(sharp["normal_error_deg"][method]["mean"])
+    partial = tmp_path / "partial"
+    render_dataset(DatasetConfig(source="chair", num_shapes=4, views=2, resolution=32, channels=("depth", "mask")),
+                   partial, progress=False)
+    with pytest.raises(ValueError, match=r"no coarse view for shape 'chair/00000\d' view [23]"):
+        evaluate_maps(run, data, tmp_path / "bad", coarse_data=partial)
+
+
+def test_residual_normals_start_from_the_depth_normals():
+    """normal_residual: with G_n's output at 0, N^g is exactly the finite-difference normals of the depth."""
+    from ngp_mi.models.maps import MapsConfig, MapsModel, depth_to_net
+
+    model = MapsModel(MapsConfig(ngf=4, blocks=1, nef=4, ndf=4, rf_maps=(16,), rf_albedo=(16,), normal_residual=True))
+    last = model.G_n.decoder[-2]
+    torch.nn.init.zeros_(last.weight)
+    torch.nn.init.zeros_(last.bias)
+    camera = Camera.orbit(10.0, 30.0, 32)
+    mask = torch.zeros(1, 1, 32, 32)
+    mask[..., 8:24, 6:26] = 1
+    depth = (1.8 + 0.01 * torch.arange(32.0).reshape(1, 1, 1, 32) + 0.005 * torch.arange(32.0).reshape(1, 1, 32, 1)) * mask
+    expected = normals_from_depth(depth, mask, camera)
+    got = model.generate_normals(depth_to_net(depth, mask), [camera])
+    inside = mask[0, 0] > 0
+    assert torch.allclose(got[0][:, inside], expected[0][:, inside], atol=2e-3)
+    assert (got[0][:, ~inside] == 0).all()

@@ -1,5 +1,6 @@
 """G_shape: IM-NET nets and losses, extraction, the differentiable iso-surface link, training and sampling."""
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -258,3 +259,29 @@ def test_every_preset_config_loads_and_builds(preset):
     data = data_config(config["data"])
     model = ShapeModel(model_config(config["model"], data))
     assert model.encoder(torch.zeros(1, 1, *(data.voxel_resolution,) * 3)).shape == (1, model.config.code_dim)
+
+
+def test_render_dataset_of_autoencoded_shapes_pairs_with_the_detailed_views(tiny_run, tmp_path):
+    """--coarse-shapes: same ids and cameras as the detailed dataset, other geometry (the reconstruction)."""
+    from ngp_mi.data.datasets import ReflectanceMapDataset
+    from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
+
+    run, _ = tiny_run
+    config = DatasetConfig(source="chair", num_shapes=2, views=2, resolution=32, channels=("depth", "mask"))
+    render_dataset(config, tmp_path / "detailed", progress=False)
+    summary = render_dataset(dataclasses.replace(config, coarse_shapes=str(run), coarse_resolution=32),
+                             tmp_path / "coarse", progress=False)
+    detailed, coarse = ReflectanceMapDataset(tmp_path / "detailed"), ReflectanceMapDataset(tmp_path / "coarse")
+    rendered = {(r["shape_id"], r["view"]) for r in coarse.records}
+    assert len(rendered) + 2 * len(summary["skipped_shapes"]) == 4
+    assert all("empty shape" in reason for reason in summary["skipped_shapes"].values())
+    for i, record in enumerate(detailed.records):
+        if (record["shape_id"], record["view"]) not in rendered:
+            continue
+        j = next(j for j, r in enumerate(coarse.records) if (r["shape_id"], r["view"]) == (record["shape_id"], record["view"]))
+        assert np.allclose(record["K"], coarse.records[j]["K"]) and np.allclose(record["E"], coarse.records[j]["E"])
+        a, b = detailed[i], coarse[j]
+        assert b["mask"].sum() > 0 and not torch.equal(a["depth"], b["depth"])
+    with pytest.raises(ValueError, match="not a scene file"):
+        render_dataset(dataclasses.replace(config, source="scenes/table_lamp.xml", coarse_shapes=str(run)), tmp_path / "s",
+                       progress=False)

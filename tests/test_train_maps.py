@@ -32,20 +32,48 @@ def weights(run: Path) -> dict:
 
 
 def test_outputs_and_exact_resume(tmp_path):
-    # Bitwise exactness holds on the CPU; CUDA's atomic reductions (cuDNN, Dr.Jit's scatter-adds) reorder sums.
+    # 6 map steps, then 3 steps of the G_sp^real stage. Bitwise exactness holds on the CPU; CUDA's
+    # atomic reductions (cuDNN, Dr.Jit's scatter-adds) reorder sums.
     straight = train_maps(config(tmp_path, "straight", device='"cpu"'), log=lambda *_: None)
     records = [json.loads(line) for line in (straight / "log.jsonl").read_text().splitlines()]
-    assert [r["step"] for r in records] == [1, 2, 3, 4, 5, 6]
-    assert all(r["G"] > 0 and r["D"] > 0 for r in records)
-    assert sorted(p.name for p in (straight / "images").iterdir()) == ["step-00000003.png", "step-00000006.png"]
-    assert [p.name for p in list_checkpoints(straight)] == ["ckpt-00000003", "ckpt-00000006"]
+    assert [r["step"] for r in records] == list(range(1, 10))
+    assert [r["stage"] for r in records] == ["maps"] * 6 + ["specular"] * 3
+    assert all(r["G"] > 0 and r["D"] > 0 for r in records) and "cyc_real" in records[-1]
+    assert sorted(p.name for p in (straight / "images").iterdir()) == [f"step-0000000{i}.png" for i in (3, 6, 9)]
+    assert [p.name for p in list_checkpoints(straight)] == ["ckpt-00000003", "ckpt-00000006", "ckpt-00000009"]
+    assert {k.split(".")[0] for k in weights(straight)} >= {"G_n", "G_sp", "F_sp", "D_real", "D_dfr"}
 
-    train_maps(config(tmp_path, "resumed", iterations=3, device='"cpu"'), log=lambda *_: None)  # killed after step 3 ...
-    resumed = train_maps(config(tmp_path, "resumed", iterations=6, device='"cpu"'), log=lambda *_: None)  # ... resumed
+    # killed after step 3 and resumed, killed again after step 7 (inside the specular stage) and resumed
+    text = config(tmp_path, "resumed", device='"cpu"').read_text()
+    for name, cut_text in (("cut-3", text[:text.index("[specular]")].replace("iterations = 6", "iterations = 3")),
+                           ("cut-7", text.replace("iterations = 3", "iterations = 1"))):
+        (tmp_path / f"{name}.toml").write_text(cut_text)
+        train_maps(tmp_path / f"{name}.toml", log=lambda *_: None)
+    assert list_checkpoints(tmp_path / "resumed")[-1].name == "ckpt-00000007"
+    resumed = train_maps(config(tmp_path, "resumed", device='"cpu"'), log=lambda *_: None)
     a, b = weights(straight), weights(resumed)
     assert a.keys() == b.keys()
     for key in a:
         assert torch.equal(a[key], b[key]), key
+
+
+def test_a_maps_only_run_resumes_into_the_specular_stage(tmp_path):
+    text = config(tmp_path, "old", iterations=2, device='"cpu"').read_text()
+    maps_only = tmp_path / "maps-only.toml"
+    maps_only.write_text(text[:text.index("[specular]")])
+    run = train_maps(maps_only, log=lambda *_: None)
+    assert "G_sp" not in {k.split(".")[0] for k in weights(run)}
+    train_maps(config(tmp_path, "old", iterations=2, device='"cpu"'), log=lambda *_: None)
+    records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert [r["stage"] for r in records] == ["maps"] * 2 + ["specular"] * 3
+    assert "G_sp" in {k.split(".")[0] for k in weights(run)}
+
+
+def test_config_errors_name_the_table_and_field(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(TINY.read_text().replace("real_spp = 8", "real_sp = 8"))
+    with pytest.raises(ValueError, match=r"unknown \[specular\] field\(s\) \['real_sp'\]"):
+        train_maps(bad, log=lambda *_: None)
 
 
 def test_checkpoints_are_atomic_and_load_without_code(tmp_path):
@@ -72,5 +100,5 @@ def test_two_processes_with_gloo_stay_in_sync(tmp_path):
                           capture_output=True, text=True, timeout=600, env=env)
     assert done.returncode == 0, done.stderr[-2000:]
     records = [json.loads(line) for line in (tmp_path / "ddp" / "log.jsonl").read_text().splitlines()]
-    assert records[-1] == {"step": 3, "world": 2, "ranks_in_sync": True}
+    assert records[-1] == {"step": 6, "world": 2, "ranks_in_sync": True}  # 3 map steps, 3 specular steps
     assert all(r["world"] == 2 for r in records)

@@ -33,7 +33,7 @@ import numpy as np
 from ngp_mi import __version__, backend
 from ngp_mi.camera import Camera, ViewDistribution
 from ngp_mi.data.exr import write_exr
-from ngp_mi.data.sources import SourceItem, resolve_source
+from ngp_mi.data.sources import SourceItem, autoencoded_items, resolve_source
 from ngp_mi.lights import DirectionalLight, Light, overhead_rig
 from ngp_mi.render.gbuffer import CHANNELS, GBufferRenderer
 from ngp_mi.render.scene import build_scene, lights_to_mitsuba, render, set_sensor_camera
@@ -55,6 +55,8 @@ class DatasetConfig:
     seed: int = 0
     compression: str = "zip"
     half: bool = False  # store every channel but depth as 16-bit float
+    coarse_shapes: str | None = None  # a `train shape` run: render the shapes as its autoencoder reconstructs them
+    coarse_resolution: int = 64       # marching-cubes grid of those reconstructions
     view_distribution: ViewDistribution = ViewDistribution()
 
     def __post_init__(self) -> None:
@@ -215,7 +217,9 @@ def _check_settings(out: Path, config: DatasetConfig) -> None:
     current = config.to_json()
     if settings.exists():
         previous = json.loads(settings.read_text())
-        changed = {k for k in current if previous.get(k) != json.loads(json.dumps(current[k]))}
+        # a setting added after the folder was rendered counts as its default
+        defaults = json.loads(json.dumps(DatasetConfig(source=config.source).to_json()))
+        changed = {k for k in current if previous.get(k, defaults[k]) != json.loads(json.dumps(current[k]))}
         if changed:
             raise ValueError(f"{settings}: this folder was rendered with other settings ({', '.join(sorted(changed))}); "
                              "use a new --out or the same settings to resume")
@@ -238,7 +242,11 @@ def render_dataset(config: DatasetConfig, out: str | Path, shard: tuple[int, int
     log.setLevel(logging.INFO)
     try:
         _check_settings(out, config)
-        items = resolve_source(config.source, config.num_shapes, config.seed)
+        if config.coarse_shapes:
+            items = autoencoded_items(config.source, config.num_shapes, config.seed, config.coarse_shapes,
+                                      config.coarse_resolution)
+        else:
+            items = resolve_source(config.source, config.num_shapes, config.seed)
         mine = [(i, item) for i, item in enumerate(items) if i % shard[1] == shard[0]]
         suffix = _shard_suffix(shard)
         manifest_path = out / f"manifest{suffix}.jsonl"

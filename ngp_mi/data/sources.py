@@ -11,6 +11,11 @@ builds the Mitsuba shapes lazily (a bad mesh fails when its turn comes, with its
   (the camera distribution looks at the origin from distance 2; the scene is not rescaled). Its
   emitters are used when the dataset asks for the scene's own lights; its sensors and integrator
   are ignored.
+
+:func:`autoencoded_items` turns the shapes of a family or mesh source into NGP's *coarse* shapes:
+each is voxelised, encoded and decoded by a trained shape autoencoder (``ngp-mi train shape``)
+and extracted by marching cubes — what G_shape produces, for shapes whose detailed version is
+known (``render-dataset --coarse-shapes RUN``; ``evaluate maps`` pairs their views by shape id).
 """
 
 from __future__ import annotations
@@ -41,7 +46,7 @@ class SceneContent:
 @dataclasses.dataclass(frozen=True)
 class SourceItem:
     id: str
-    kind: str  # "procedural" | "mesh" | "scene"
+    kind: str  # "procedural" | "mesh" | "scene" | "autoencoded"
     origin: str
     load: Callable[[], SceneContent]
 
@@ -115,3 +120,42 @@ def resolve_source(source: str, num_shapes: int, seed: int = 0) -> list[SourceIt
             raise ValueError(f"{path}: no meshes ({', '.join(MESH_SUFFIXES)}) or scene files found")
         return [_mesh(m.id, m.path) for m in meshes[:num_shapes]]
     raise ValueError(f"--source {source!r}: not a family ({', '.join(sorted(FAMILIES))}), file or folder")
+
+
+def autoencoded_items(source: str, num_shapes: int, seed: int, shape_run: str | Path,
+                      resolution: int = 64) -> list[SourceItem]:
+    """The shapes of ``source`` reconstructed by the shape autoencoder of ``shape_run``.
+
+    Ids are the original shapes' ids, so the views of a dataset of these coarse shapes pair with
+    the views of the detailed ones (same seed: same cameras). Every part gets one grey diffuse
+    material (the coarse shape carries no parts). A shape the autoencoder turns empty fails when
+    its turn comes, with that reason.
+    """
+    import torch
+
+    from ngp_mi.data.shapes import shape_items
+    from ngp_mi.train_shape import load_shape_model
+
+    if source not in FAMILIES and Path(source).suffix.lower() == ".xml":
+        raise ValueError(f"--coarse-shapes needs a family or mesh source, not a scene file: {source!r}")
+    model = load_shape_model(shape_run)
+    voxel_resolution = model.config.voxel_resolution
+    grey = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.5, 0.5, 0.5]}}
+
+    def coarse(item: Any) -> SourceItem:
+        def load() -> SceneContent:
+            _, _, grid = item.load()
+            voxels = torch.from_numpy(grid(voxel_resolution)).float()[None, None]
+            with torch.no_grad():
+                code = model.encode(voxels.to(model.device))[0]
+            extraction = model.extract(code, resolution)
+            if extraction.mesh is None:
+                raise ValueError(f"{item.id}: the autoencoder of {shape_run} reconstructs an empty shape")
+            mesh = extraction.mesh
+            return SceneContent(mesh_parts_to_mitsuba(mesh, default_bsdf=grey), mesh.bounds,
+                                meta={"coarse_of": item.id, "shape_run": str(shape_run), "resolution": resolution,
+                                      "faces": int(len(mesh.faces))})
+
+        return SourceItem(item.id, "autoencoded", str(source), load)
+
+    return [coarse(item) for item in shape_items(source, num_shapes, seed)]

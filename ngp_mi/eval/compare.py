@@ -8,7 +8,16 @@ For every shape × view × light setup this renders, times and scores against th
 * **R_diff** (k_d = 1) and **R_BP** (the paper's k_d, k_s, α) on the ground-truth G-buffer maps
   (render of the maps + shading), the deferred renderers of NGP;
 * the effects the deferred renderers lack, as images of their own: ``direct`` (direct light with
-  shadows, no interreflection) and ``direct_unshadowed`` (no shadows either).
+  shadows, no interreflection) and ``direct_unshadowed`` (no shadows either);
+* with a trained ``train maps`` run (``maps_checkpoint``), NGP's images on generated maps (paper
+  Sec. 5 and App. "NGP variants"): NGP-BP, NGP (R_diff ⊕ G_sp^real, when the run has the specular
+  stage), NGP-plus (NGP under the overhead rig plus R_BP of the additional lights; light setup
+  ``rig+random``), and the ablations w/o G_n, w/o G_da and w/o G_sp^real;
+* FID and KID of every method's images against the reference images, when the Inception weights
+  are given (``inception_weights``, see :mod:`ngp_mi.eval.fid`).
+
+Light setups: ``rig`` (the 4 overhead lights of training), ``random`` (1–4 random lights) and
+``rig+random`` (the rig plus random additional lights, the NGP-plus use case).
 
 Radiometric conventions (stated in the report): all images are linear RGB radiance; the
 Blinn-Phong images are divided by π, since R_diff with k_d = 1 is π times the radiance of a
@@ -36,7 +45,7 @@ from ngp_mi.camera import Camera
 from ngp_mi.data.render_dataset import DatasetConfig, derived_seed, view_cameras, view_lights
 from ngp_mi.data.sources import resolve_source
 from ngp_mi.eval.metrics import flip, psnr, ssim
-from ngp_mi.lights import Light
+from ngp_mi.lights import Light, overhead_rig
 from ngp_mi.render.gbuffer import GBufferRenderer, maps_to_tensors
 from ngp_mi.render.scene import build_scene, lights_to_mitsuba, render, set_sensor_camera
 from ngp_mi.render.shading import shade
@@ -56,10 +65,22 @@ class CompareConfig:
     k_d: float = 0.8
     k_s: float = 0.2
     alpha: float = 4.0
-    maps_checkpoint: str | None = None  # a `train maps` run: adds NGP-BP and R_diff on generated maps
+    maps_checkpoint: str | None = None  # a `train maps` run: adds NGP's variants and ablations
+    inception_weights: str | None = None  # inception-2015-12-05.pt: adds FID / KID
 
 
 METRICS = ("psnr_linear", "ssim_linear", "psnr_srgb", "ssim_srgb", "flip")
+LIGHT_SETUPS = ("rig", "random", "rig+random")
+
+
+def setup_lights(config: DatasetConfig, setup: str, shape_index: int, view: int) -> tuple[list[Light], list[Light]]:
+    """(all lights, the lights beyond the overhead rig) of one light setup."""
+    if setup not in LIGHT_SETUPS:
+        raise ValueError(f"light setup must be one of {LIGHT_SETUPS}, got {setup!r}")
+    if setup == "rig":
+        return overhead_rig(), []
+    extra = view_lights(dataclasses.replace(config, lights="random"), shape_index, view)
+    return (overhead_rig() + extra if setup == "rig+random" else extra), extra
 
 
 def score(reference: np.ndarray, test: np.ndarray, mask: np.ndarray) -> dict[str, float]:
@@ -88,12 +109,20 @@ def run_compare(config: CompareConfig, out: str | Path, log=print) -> dict[str, 
 
     out = Path(out)
     (out / "images").mkdir(parents=True, exist_ok=True)
-    items = resolve_source(config.source, config.num_shapes, config.seed)
-    model = None
-    if config.maps_checkpoint:
-        from ngp_mi.eval.maps_eval import load_model
+    for setup in config.light_setups:
+        setup_lights(DatasetConfig(source=config.source), setup, 0, 0)  # bad names fail before any work
+    inception = None
+    if config.inception_weights:
+        from ngp_mi.eval.fid import InceptionFeatures
 
-        model = load_model(config.maps_checkpoint)
+        inception = InceptionFeatures(config.inception_weights)
+    items = resolve_source(config.source, config.num_shapes, config.seed)
+    model = specular = None
+    if config.maps_checkpoint:
+        from ngp_mi.eval.maps_eval import load_model, load_specular
+
+        model, specular = load_model(config.maps_checkpoint), load_specular(config.maps_checkpoint)
+    images_by_method: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     rows: list[dict[str, Any]] = []
     sheets: list[str] = []
     for index, item in enumerate(items):
@@ -103,16 +132,20 @@ def run_compare(config: CompareConfig, out: str | Path, log=print) -> dict[str, 
         for view, camera in enumerate(view_cameras(dataset_like, index)):
             gbuffer = GBufferRenderer(content.shapes, content.bounds, camera, ("depth", "normal", "albedo", "mask"))
             for setup in config.light_setups:
-                lights = view_lights(dataclasses.replace(dataset_like, lights=setup), index, view)
-                name = f"{item.id.replace('/', '_')}_v{view}_{setup}"
+                lights, extra = setup_lights(dataset_like, setup, index, view)
+                name = f"{item.id.replace('/', '_')}_v{view}_{setup.replace('+', '-')}"
                 log(f"compare: {name}")
-                rows_here, sheet = _compare_one(config, content, camera, gbuffer, lights, derived_seed(
-                    config.seed, index, view), out / "images" / f"{name}.png", model)
+                rows_here, sheet, images = _compare_one(config, content, camera, gbuffer, lights, extra, derived_seed(
+                    config.seed, index, view), out / "images" / f"{name}.png", model, specular)
                 for row in rows_here:
                     row.update(shape=item.id, view=view, lights=setup)
+                for method, pair in images.items():
+                    images_by_method.setdefault(method, []).append(pair)
                 rows.extend(rows_here)
                 sheets.append(sheet)
     summary = summarise(rows)
+    if inception is not None:
+        add_distribution_distances(summary, images_by_method, inception, log)
     (out / "results.json").write_text(json.dumps({"config": dataclasses.asdict(config), "rows": rows,
                                                   "summary": summary}, indent=1))
     plot_speed_accuracy(summary, out / "speed_accuracy.png")
@@ -121,8 +154,30 @@ def run_compare(config: CompareConfig, out: str | Path, log=print) -> dict[str, 
     return summary
 
 
-def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: GBufferRenderer,
-                 lights: list[Light], seed: int, sheet_path: Path, model: Any = None) -> tuple[list[dict[str, Any]], str]:
+def add_distribution_distances(summary: list[dict[str, Any]], images: dict[str, list[tuple[np.ndarray, np.ndarray]]],
+                               inception: Any, log=print) -> None:
+    """FID and KID of each method's sRGB images against the reference images of the same views."""
+    from ngp_mi.eval.metrics import fid_from_features, kernel_inception_distance
+
+    cache: dict[int, np.ndarray] = {}
+    for entry in summary:
+        pairs = images.get(entry["method"])
+        if not pairs or len(pairs) < 2:
+            continue
+        log(f"compare: FID / KID of {entry['method']} ({len(pairs)} images)")
+        key = id(pairs[0][0])
+        reference = cache.get(key)
+        if reference is None or len(reference) != len(pairs):
+            reference = inception([linear_to_srgb(r) for r, _ in pairs])
+            cache[key] = reference
+        features = inception([linear_to_srgb(t) for _, t in pairs])
+        entry["fid"] = fid_from_features(reference, features)
+        entry["kid"] = kernel_inception_distance(reference, features)
+
+
+def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: GBufferRenderer, lights: list[Light],
+                 extra: list[Light], seed: int, sheet_path: Path, model: Any = None, specular: Any = None,
+                 ) -> tuple[list[dict[str, Any]], str, dict[str, tuple[np.ndarray, np.ndarray]]]:
     scene_dict = {**content.shapes, **lights_to_mitsuba(lights)}
 
     def physically_based(integrator: dict, spp: int, render_seed: int) -> Callable[[], np.ndarray]:
@@ -143,22 +198,42 @@ def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: G
             return image[0].permute(1, 2, 0).numpy() / math.pi
         return run
 
-    def neural(mode: str, **constants: float) -> Callable[[], np.ndarray]:
-        """NGP on this view: maps generated from the ground-truth depth, appearance from E_da of the
-        ground-truth albedo (the exemplar handle), shaded by R_diff or R_BP."""
-        from ngp_mi.models.maps import depth_to_net
+    view = {"K": torch.tensor(camera.K, dtype=torch.float32)[None], "E": torch.tensor(camera.E, dtype=torch.float32)[None],
+            "bounds": torch.tensor(content.bounds, dtype=torch.float32)[None]}
+    blinn_phong = {"mode": "blinn_phong", "k_d": config.k_d, "k_s": config.k_s, "alpha": config.alpha}
 
-        view = {"K": torch.tensor(camera.K, dtype=torch.float32)[None], "E": torch.tensor(camera.E, dtype=torch.float32)[None],
-                "bounds": torch.tensor(content.bounds, dtype=torch.float32)[None]}
+    def neural(variant: str) -> Callable[[], np.ndarray]:
+        """One NGP variant on this view. Maps are generated from the ground-truth depth with the
+        appearance code μ(E_da(ground-truth albedo)) (the exemplar handle). Variants (paper Sec. 5,
+        App. "NGP variants", ablations): ``bp`` R_BP under the setup's lights; ``no_sp`` R_diff only;
+        ``ngp`` R_diff ⊕ G_sp^real(N^g, I_df^g), G_sp^real conditioned on the diffuse image under
+        the training rig (its input domain); ``no_gn`` / ``no_gda`` NGP with normals from the depth
+        map / a white albedo; ``plus`` NGP under the rig plus R_BP of the lights beyond the rig."""
+        from ngp_mi.render.maps import normals_from_depth
 
         def run() -> np.ndarray:
             t = maps_to_tensors(gbuffer.render(camera))
+            mask = t["mask"]
             with torch.no_grad():
-                normal = model.G_n(depth_to_net(t["depth"], t["mask"]))
                 mu, _ = model.E_da(2 * t["albedo"] - 1)
-                albedo = (model.G_da(torch.cat([model.noc(t["depth"], t["mask"], view), normal], 1), mu) + 1) / 2
-                image = shade(normal, albedo, t["mask"], lights, camera, mode=mode, **constants)
-            return image[0].permute(1, 2, 0).numpy() / math.pi
+                if variant == "no_gn":
+                    normal = normals_from_depth(t["depth"], mask, camera)
+                    albedo_net = model.G_da(torch.cat([model.noc(t["depth"], mask, view), normal], 1), mu)
+                else:
+                    generated = model.decorate(t["depth"], mask, view, mu)
+                    normal, albedo_net = generated["normal"], generated["albedo"]
+                albedo = torch.ones_like(albedo_net) if variant == "no_gda" else (albedo_net + 1) / 2
+                if variant == "bp":
+                    image = shade(normal, albedo, mask, lights, camera, **blinn_phong) / math.pi
+                else:
+                    diffuse_lights = overhead_rig() if variant == "plus" else lights
+                    image = shade(normal, albedo, mask, diffuse_lights, camera, mode="diffuse", k_d=config.k_d) / math.pi
+                    if variant != "no_sp":
+                        base = 2 * model.render_diffuse(normal, albedo, mask, [camera]) - 1
+                        image = image + specular.specular(normal, base, mask)
+                    if variant == "plus":
+                        image = image + shade(normal, albedo, mask, extra, camera, **blinn_phong) / math.pi
+            return image[0].permute(1, 2, 0).numpy()
         return run
 
     methods: list[tuple[str, str, Callable[[], np.ndarray]]] = [
@@ -177,13 +252,21 @@ def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: G
     if model is not None:
         methods += [
             (f"NGP-BP: R_BP on generated maps (k_d {config.k_d}, k_s {config.k_s}, α {config.alpha:g})", "neural",
-             neural("blinn_phong", k_d=config.k_d, k_s=config.k_s, alpha=config.alpha)),
-            ("R_diff on generated maps (NGP w/o G_sp^real)", "neural", neural("diffuse", k_d=config.k_d)),
+             neural("bp")),
+            ("NGP w/o G_sp^real: R_diff on generated maps", "neural", neural("no_sp")),
         ]
+    if model is not None and specular is not None:
+        methods += [("NGP: R_diff ⊕ G_sp^real", "neural", neural("ngp")),
+                    ("NGP w/o G_n: normals from the depth map", "neural", neural("no_gn")),
+                    ("NGP w/o G_da: white albedo", "neural", neural("no_gda"))]
+        if extra and len(extra) < len(lights):
+            methods.append(("NGP-plus: NGP under the rig + R_BP of the added lights", "neural", neural("plus")))
     rows = [{"method": "reference", "kind": "reference", "seconds": reference_time, "spp": config.reference_spp}]
     tiles, errors, labels = [to_uint8(reference)], [np.zeros_like(mask)], ["reference"]
+    images: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for name, kind, fn in methods:
         image, seconds = _timed(fn)
+        images[name] = (reference, image)
         scores = score(reference, image, mask)
         row = {"method": name, "kind": kind, "seconds": seconds, **scores}
         if kind == "path":
@@ -195,7 +278,7 @@ def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: G
     error_tiles = [_magma(e) for e in errors]
     sheet = contact_sheet(tiles + error_tiles, labels + ["FLIP error"] * len(errors), columns=len(tiles))
     save_png(sheet_path, sheet)
-    return rows, sheet_path.name
+    return rows, sheet_path.name, images
 
 
 def _magma(error: np.ndarray) -> np.ndarray:
@@ -241,7 +324,7 @@ def plot_speed_accuracy(summary: list[dict[str, Any]], path: Path) -> None:
         ax.plot([s["median_ms"] for s in ladder], [s[key] for s in ladder], "o-", color="black", label="path tracing")
         for s in ladder:
             ax.annotate(f"{s['spp']} spp", (s["median_ms"], s[key]), textcoords="offset points", xytext=(4, 4), fontsize=8)
-        for s, marker in zip([s for s in summary if s["kind"] in ("deferred", "effect", "neural")], "s^Dv*P"):
+        for s, marker in zip([s for s in summary if s["kind"] in ("deferred", "effect", "neural")], "s^Dv*PXhpd<>"):
             ax.plot([s["median_ms"]], [s[key]], marker, markersize=8, label=s["method"])
         ax.set_xscale("log")
         ax.set_xlabel("time per image, ms (median)")
@@ -257,10 +340,20 @@ def plot_speed_accuracy(summary: list[dict[str, Any]], path: Path) -> None:
 def write_report(config: CompareConfig, summary: list[dict[str, Any]], sheets: list[str], out: Path) -> None:
     b = backend.load()
     keys = ["median_ms"] + [f"{m}{suffix}" for suffix in ("", "_masked") for m in METRICS]
+    keys += [k for k in ("fid", "kid") if any(k in s for s in summary)]
     head = ["method"] + [k.replace("median_ms", "median ms") for k in keys]
     rows = "\n".join(f"<tr><td>{html.escape(s['method'])}</td>" + "".join(f"<td>{_fmt(s.get(k, ''))}</td>" for k in keys)
                      + "</tr>" for s in summary)
     ref = next(s for s in summary if s["kind"] == "reference")
+    if "fid" in keys:
+        fid_note = (f"FID / KID: Inception-v3 pool3 features ({html.escape(str(config.inception_weights))}) of each "
+                    "method's sRGB images against the reference images of the same views; KID is the unbiased "
+                    "cubic-kernel MMD². With few images FID is strongly biased upwards (its covariances have "
+                    "rank &lt; images): compare methods within this table only.")
+    else:
+        from ngp_mi.eval.fid import missing_weights_message
+
+        fid_note = "FID / KID not computed: " + html.escape(missing_weights_message(None)) + "."
     images = "\n".join(f'<p>{html.escape(name)}</p><img src="images/{html.escape(name)}">' for name in sheets)
     text = f"""<!doctype html><html><head><meta charset="utf-8"><title>ngp-mi compare</title>
 <style>body{{font-family:sans-serif;max-width:1200px;margin:auto}} table{{border-collapse:collapse;font-size:12px}}
@@ -281,8 +374,13 @@ radiance of a Lambertian surface of albedo I_d under the same lights, and R_BP u
 differences to the reference measure what the deferred renderers cannot model.</li>
 <li>Neural rows (with <code>--maps-checkpoint</code>): G_n and G_da of a trained run applied to the
 ground-truth depth of each view, with the appearance code taken from E_da of the ground-truth albedo
-(the exemplar handle); no realistic-specular network yet, so these are NGP-BP and R_diff on generated maps.</li>
-<li>FID / KID are not computed in this version (they need an Inception network and its weights file).</li></ul>
+(the exemplar handle). NGP-BP: R_BP under the setup's lights. NGP: R_diff / π ⊕ G_sp^real (added in linear
+radiance, on the object; G_sp^real sees the diffuse image under the training rig, its input domain, so its
+highlights do not follow other lights, as the paper notes). NGP-plus (setup rig+random only): NGP under the rig
+plus R_BP / π of the added lights. Ablations as in the paper: w/o G_n uses normals computed from the depth map,
+w/o G_da a white albedo, w/o G_sp^real the diffuse image alone. NGP, NGP-plus and two ablations need a run
+with the specular stage.</li>
+<li>{fid_note}</li></ul>
 <h2>Results</h2><table><tr>{''.join(f'<th>{html.escape(h)}</th>' for h in head)}</tr>
 {rows}</table>
 <h2>Speed against accuracy</h2><img src="speed_accuracy.png" width="1100">

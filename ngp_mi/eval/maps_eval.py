@@ -19,11 +19,12 @@ from typing import Any
 import torch
 from torch.utils.data import DataLoader
 
-from ngp_mi.checkpoint import list_checkpoints, load_checkpoint
+from ngp_mi.checkpoint import list_checkpoints, load_checkpoint, saved_modules
 from ngp_mi.data.datasets import ReflectanceMapDataset
 from ngp_mi.models.maps import MapsModel, cameras_of, depth_to_net
 from ngp_mi.render.maps import normals_from_depth
-from ngp_mi.train_maps import NETWORKS, model_config
+from ngp_mi.models.specular import SpecularModel
+from ngp_mi.train_maps import NETWORKS, SPECULAR_NETWORKS, model_config, specular_config
 from ngp_mi.viz import contact_sheet, save_png
 
 
@@ -63,23 +64,55 @@ def load_model(run: str | Path) -> MapsModel:
     return model.eval()
 
 
+def load_specular(run: str | Path) -> SpecularModel | None:
+    """G_sp^real (and its training partners) of the newest checkpoint, or None if the run has no specular stage."""
+    checkpoint = list_checkpoints(run)[-1]
+    if "G_sp" not in saved_modules(checkpoint):
+        return None
+    state = torch.load(checkpoint / "state.pt", map_location="cpu", weights_only=True)
+    model = SpecularModel(specular_config(json.loads(state["config"])))
+    load_checkpoint(checkpoint, {name: getattr(model, name) for name in SPECULAR_NETWORKS})
+    return model.eval()
+
+
 @torch.no_grad()
 def evaluate_maps(run: str | Path, data: str | Path, out: str | Path, coarse_sigma: float = 2.0,
-                  latent_samples: int = 4, batch_size: int = 8, seed: int = 0) -> dict[str, Any]:
-    """Evaluate a run's newest checkpoint on a held-out ``render-dataset`` folder; writes ``eval.json`` / ``eval.md``."""
+                  latent_samples: int = 4, batch_size: int = 8, seed: int = 0,
+                  coarse_data: str | Path | None = None) -> dict[str, Any]:
+    """Evaluate a run's newest checkpoint on a held-out ``render-dataset`` folder; writes ``eval.json`` / ``eval.md``.
+
+    The coarse depth is ``coarse_data`` — a folder of the same shapes and views rendered from their
+    autoencoder reconstructions (``render-dataset --coarse-shapes``), paired by (shape id, view) —
+    or, without it, the ground-truth depth smoothed by ``coarse_sigma`` pixels. Normal errors count
+    the pixels on both the detailed and the coarse object.
+    """
     torch.manual_seed(seed)
     model = load_model(run)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    errors_gn, errors_depth, fidelity, diversity = [], [], [], []
+    errors_gn, errors_depth, fidelity, diversity, overlap = [], [], [], [], []
+    coarse_set = ReflectanceMapDataset(coarse_data, channels=("depth", "mask")) if coarse_data else None
+    coarse_index = {(r["shape_id"], r["view"]): i for i, r in enumerate(coarse_set.records)} if coarse_set else {}
     sheet = None
     for batch in DataLoader(ReflectanceMapDataset(data), batch_size=batch_size):
         mask, depth = batch["mask"], batch["depth"]
-        coarse = smooth_depth(depth, mask, coarse_sigma)
-        normal_gn = model.G_n(depth_to_net(coarse, mask))
-        normal_depth = normals_from_depth(coarse, mask, cameras_of(batch))
-        errors_gn.append(angular_error_deg(normal_gn, batch["normal"], mask))
-        errors_depth.append(angular_error_deg(normal_depth, batch["normal"], mask))
+        if coarse_set is None:
+            coarse, coarse_mask = smooth_depth(depth, mask, coarse_sigma), mask
+        else:
+            keys = list(zip(batch["shape_id"], batch["view"].tolist()))
+            missing = [k for k in keys if k not in coarse_index]
+            if missing:
+                raise ValueError(f"{coarse_data}: no coarse view for shape {missing[0][0]!r} view {missing[0][1]} of "
+                                 f"{data} (render it with the same --source, --seed, --views and --res)")
+            items = [coarse_set[coarse_index[k]] for k in keys]
+            coarse, coarse_mask = torch.stack([i["depth"] for i in items]), torch.stack([i["mask"] for i in items])
+        both = mask * coarse_mask
+        overlap.append(both.sum() / mask.sum().clamp_min(1))
+        cameras = cameras_of(batch)
+        normal_gn = model.generate_normals(depth_to_net(coarse, coarse_mask), cameras)
+        normal_depth = normals_from_depth(coarse, coarse_mask, cameras)
+        errors_gn.append(angular_error_deg(normal_gn, batch["normal"], both))
+        errors_depth.append(angular_error_deg(normal_depth, batch["normal"], both))
 
         noc = model.noc(depth, mask, batch)
         condition = torch.cat([noc, batch["normal"]], 1)
@@ -97,7 +130,9 @@ def evaluate_maps(run: str | Path, data: str | Path, out: str | Path, coarse_sig
                                            "z sample", "z sample"], columns=len(images))
     gn, from_depth = torch.cat(errors_gn), torch.cat(errors_depth)
     result = {
-        "checkpoint": str(list_checkpoints(run)[-1]), "data": str(data), "coarse_sigma_px": coarse_sigma,
+        "checkpoint": str(list_checkpoints(run)[-1]), "data": str(data),
+        "coarse": str(coarse_data) if coarse_data else f"smoothed, sigma {coarse_sigma} px",
+        "coarse_overlap": torch.stack(overlap).mean().item(),
         "normal_error_deg": {"G_n": {"mean": gn.mean().item(), "median": gn.median().item()},
                              "from_coarse_depth": {"mean": from_depth.mean().item(), "median": from_depth.median().item()}},
         "albedo_reconstruction_l1": torch.cat(fidelity).mean().item(),
@@ -105,9 +140,12 @@ def evaluate_maps(run: str | Path, data: str | Path, out: str | Path, coarse_sig
     }
     (out / "eval.json").write_text(json.dumps(result, indent=1) + "\n")
     n = result["normal_error_deg"]
+    coarse_text = (f"the shapes' autoencoder reconstructions (`{coarse_data}`)" if coarse_data else
+                   f"the ground truth smoothed by a masked Gaussian of σ = {coarse_sigma} px")
     (out / "eval.md").write_text(
-        f"# Map networks: {result['checkpoint']}\n\nHeld-out data: `{data}`; coarse depth = ground truth smoothed "
-        f"by a masked Gaussian of σ = {coarse_sigma} px.\n\n| normals from the coarse depth | mean error ° | median ° |\n"
+        f"# Map networks: {result['checkpoint']}\n\nHeld-out data: `{data}`; coarse depth: {coarse_text} (it covers "
+        f"{100 * result['coarse_overlap']:.1f} % of the detailed object's pixels; errors over the pixels of both)."
+        f"\n\n| normals from the coarse depth | mean error ° | median ° |\n"
         f"|---|---|---|\n| G_n (NGP) | {n['G_n']['mean']:.2f} | {n['G_n']['median']:.2f} |\n"
         f"| finite differences (NGP w/o G_n) | {n['from_coarse_depth']['mean']:.2f} | {n['from_coarse_depth']['median']:.2f} |\n\n"
         f"Albedo: E_da → G_da reconstruction L1 {result['albedo_reconstruction_l1']:.4f}; spread over z_da "

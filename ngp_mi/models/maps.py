@@ -29,7 +29,7 @@ from ngp_mi.camera import Camera
 from ngp_mi.lights import overhead_rig
 from ngp_mi.models import losses
 from ngp_mi.nets.networks import define_D, define_E, define_G
-from ngp_mi.render.maps import noc_from_depth_batch
+from ngp_mi.render.maps import noc_from_depth_batch, normals_from_depth
 from ngp_mi.render.shading import CameraLights, shade
 
 DEPTH_CENTER, DEPTH_SCALE, MASK_THRESHOLD = 2.0, 0.6, -0.97
@@ -47,6 +47,9 @@ class MapsConfig:
     k_d: float = 0.8  # chairs; 0.6 for cars (App. "Training details")
     rf_maps: tuple[int, ...] = (70, 142)
     rf_albedo: tuple[int, ...] = (34,)
+    # G_n predicts a correction to the normals of the input depth (finite differences, held fixed)
+    # instead of the normals themselves; off in the paper's G_n. See :meth:`MapsModel.generate_normals`.
+    normal_residual: bool = False
     lambdas: tuple[tuple[str, float], ...] = tuple(losses.LAMBDAS.items())
 
 
@@ -60,9 +63,21 @@ def net_to_depth(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return (DEPTH_CENTER + DEPTH_SCALE * x) * mask, mask
 
 
-def cameras_of(batch: dict[str, Any]) -> list[Camera]:
-    h, w = batch["depth"].shape[-2:]
+def cameras_of(batch: dict[str, Any], size: tuple[int, int] | None = None) -> list[Camera]:
+    """The cameras of a batch (K, E per view) for images of ``size`` (default: the batch's depth maps)."""
+    h, w = size or batch["depth"].shape[-2:]
     return [Camera.from_K_E(K.numpy(), E.numpy(), w, h) for K, E in zip(batch["K"].cpu(), batch["E"].cpu())]
+
+
+def optimizer_step(optimizer: torch.optim.Optimizer, loss: torch.Tensor,
+                   gradient_hook: Callable[[list[torch.Tensor]], None] | None = None) -> None:
+    """Backward and step; ``gradient_hook`` sees the parameters in between (multi-process training
+    averages their gradients there)."""
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    if gradient_hook is not None:
+        gradient_hook([p for group in optimizer.param_groups for p in group["params"]])
+    optimizer.step()
 
 
 class MapsModel(nn.Module):
@@ -98,11 +113,7 @@ class MapsModel(nn.Module):
         self.gradient_hook: Callable[[list[torch.Tensor]], None] | None = None
 
     def _step(self, optimizer: torch.optim.Optimizer, loss: torch.Tensor) -> None:
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        if self.gradient_hook is not None:
-            self.gradient_hook([p for group in optimizer.param_groups for p in group["params"]])
-        optimizer.step()
+        optimizer_step(optimizer, loss, self.gradient_hook)
 
     # ------------------------------------------------------------------ pieces
     def render_diffuse(self, normal: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor,
@@ -117,16 +128,36 @@ class MapsModel(nn.Module):
         noc = noc_from_depth_batch(depth, mask, batch["K"], batch["E"], batch["bounds"])
         return torch.where(mask > 0, 2 * noc - 1, -torch.ones_like(noc))
 
+    def generate_normals(self, depth_net: torch.Tensor, cameras: list[Camera]) -> torch.Tensor:
+        """N^g = G_n(d). With ``normal_residual``, N^g = normalise(N_d + G_n(d)) on the object, N_d
+        the finite-difference normals of d (no gradient through them: a lone pixel's zero-length
+        cross product would send huge gradients into the depth). G_n then starts from the coarse
+        shape's normals and learns the detail, instead of learning the differentiation too."""
+        raw = self.G_n(depth_net)
+        if not self.config.normal_residual:
+            return raw
+        depth, mask = net_to_depth(depth_net.detach())
+        from_depth = normals_from_depth(depth, mask, cameras)
+        return torch.where(mask > 0, torch.nn.functional.normalize(from_depth + raw, dim=1, eps=1e-6), raw)
+
+    def decorate(self, depth: torch.Tensor, mask: torch.Tensor, views: dict[str, Any],
+                 z: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The maps NGP generates for a depth map (paper Eq. image formation, inside R_BP):
+        N^g = G_n(d), I_da^g = G_da(NOC(d), N^g, z_da). ``views`` holds K, E and bounds per image.
+        Returns network-space ``depth``, ``noc``, ``albedo`` (2x − 1) and unit-length-ish ``normal``."""
+        depth_net = depth_to_net(depth, mask)
+        noc = self.noc(depth, mask, views)
+        normal = self.generate_normals(depth_net, cameras_of(views, depth.shape[-2:]) if self.config.normal_residual else [])
+        return {"depth": depth_net, "noc": noc, "normal": normal, "albedo": self.G_da(torch.cat([noc, normal], 1), z)}
+
     # ------------------------------------------------------------------ one step
     def forward(self, depth_batch: dict[str, Any], maps_batch: dict[str, Any]) -> dict[str, torch.Tensor]:
         """Both cycles; returns the generator loss terms (and keeps the visuals)."""
         cams_d, cams_m = cameras_of(depth_batch), cameras_of(maps_batch)
         d_r, m_d = depth_batch["depth"], depth_batch["mask"]
-        d_r_net = depth_to_net(d_r, m_d)
-        noc_r = self.noc(d_r, m_d, depth_batch)
-        normal_g = self.G_n(d_r_net)
         z = torch.randn(d_r.shape[0], self.config.latent_dim, device=d_r.device)
-        albedo_g_net = self.G_da(torch.cat([noc_r, normal_g], 1), z)
+        top = self.decorate(d_r, m_d, depth_batch, z)
+        d_r_net, noc_r, normal_g, albedo_g_net = top["depth"], top["noc"], top["normal"], top["albedo"]
         diffuse_g = self.render_diffuse(normal_g, (albedo_g_net + 1) / 2, m_d, cams_d)
         diffuse_g_net = 2 * diffuse_g - 1
         depth_cycled_net = self.G_depth(diffuse_g_net)
@@ -139,7 +170,7 @@ class MapsModel(nn.Module):
         diffuse_r_net = 2 * diffuse_r - 1
         depth_g_net = self.G_depth(diffuse_r_net)
         noc_g = self.noc(*net_to_depth(depth_g_net), maps_batch)
-        normal_cycled = self.G_n(depth_g_net)
+        normal_cycled = self.generate_normals(depth_g_net, cams_m)
         mu, logvar = self.E_da(albedo_r_net)
         z_encoded = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
         albedo_cycled_net = self.G_da(torch.cat([noc_g, normal_r], 1), z_encoded)

@@ -1,0 +1,167 @@
+"""The realistic specular generator G_sp^real (paper Sec. 3.5, "Learning realistic specular generation").
+
+G_sp^real takes the generated detailed normals N^g and the generated diffuse image I_df^g and
+produces a realistic specular map I_rs^g; blending it with the diffuse image gives the composite
+I_c^g = I_df^g ⊕ I_rs^g that a discriminator D_real compares with real images (the paper's
+image-formation equation: I = R(…) ⊕ G_sp^real(Π_v(G_shape(z_s)))). The training data is only a
+collection of real images; the paper trains it "with the same adversarial cycle-consistency idea"
+as the map generators and gives no further detail, so the cycle is ours:
+
+* generated → real → generated: I_df^g → I_c^g = I_df^g ⊕ G_sp(N^g, I_df^g) → F_sp(I_c^g) ≈ I_df^g;
+* real → generated → real: I^r → Î_df = F_sp(I^r) → N̂ = G_n(G_depth(Î_df)) (the frozen map
+  networks) → Î_df ⊕ G_sp(N̂, Î_df) ≈ I^r;
+
+with F_sp (real image → diffuse image) the inverse generator, D_real on composites vs real images
+and D_dfr on F_sp's diffuse images vs R_diff's. Cycle terms are L1 with weight λ_cyc (10, CycleGAN's
+default; the paper gives none for this stage).
+
+Conventions: ⊕ is addition in linear radiance, I = I_df / π + M ⊙ I_rs with I_rs ∈ [0, 1] (a
+specular lobe only adds light, only on the object). I_df / π is the radiance of R_diff (see
+``render.shading``), so composites and path-traced "real" images share one scale. D_real judges
+sRGB-encoded images (2 sRGB − 1), as photographs are stored; the map networks keep their own
+convention (diffuse network images are 2 R_diff − 1).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Callable
+
+import torch
+from torch import nn
+
+from ngp_mi.models import losses
+from ngp_mi.models.maps import MapsModel, cameras_of, net_to_depth, optimizer_step
+from ngp_mi.nets.networks import define_D, define_G
+
+
+@dataclasses.dataclass(frozen=True)
+class SpecularConfig:
+    ngf: int = 64
+    blocks: int = 9
+    ndf: int = 64
+    rf_image: tuple[int, ...] = (70, 142)
+    lr: float = 1e-4
+    beta1: float = 0.5
+    lambda_cycle: float = 10.0
+
+
+def srgb_encode(linear: torch.Tensor) -> torch.Tensor:
+    """The sRGB transfer function of linear values clipped to [0, 1], differentiable everywhere
+    (the power branch is evaluated only where it is used, so its infinite slope at 0 never appears)."""
+    x = linear.clamp(0.0, 1.0)
+    power = 1.055 * x.clamp_min(0.0031308) ** (1 / 2.4) - 0.055
+    return torch.where(x <= 0.0031308, 12.92 * x, power)
+
+
+def srgb_decode(encoded: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`srgb_encode` on [0, 1]."""
+    x = encoded.clamp(0.0, 1.0)
+    return torch.where(x <= 0.04045, x / 12.92, ((x.clamp_min(0.04045) + 0.055) / 1.055) ** 2.4)
+
+
+def image_to_net(radiance: torch.Tensor) -> torch.Tensor:
+    """Linear radiance → the discriminators' image space, 2 sRGB(I) − 1."""
+    return 2 * srgb_encode(radiance) - 1
+
+
+def blend(diffuse_radiance: torch.Tensor, specular: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """⊕ of the paper's image formation (Sec. 3.5): I_c = I_df ⊕ I_rs = I_df + M ⊙ I_rs, linear radiance."""
+    return diffuse_radiance + mask * specular
+
+
+def realistic_gan_loss(D_real: Callable, composite_net: torch.Tensor) -> torch.Tensor:
+    """L_real^GAN (Sec. 3.5): composites I_c^g = I_df^g ⊕ G_sp^real(N^g, I_df^g) against real images."""
+    return losses.adversarial_loss(D_real, composite_net)
+
+
+def specular_cycle_loss(cycled: torch.Tensor, original: torch.Tensor) -> torch.Tensor:
+    """L_sp^cyc (Sec. 3.5, "the same adversarial cycle-consistency idea"): L1 of either cycle above."""
+    return (cycled - original).abs().mean()
+
+
+class SpecularModel(nn.Module):
+    """G_sp^real with its inverse F_sp and discriminators; :meth:`optimize` trains them on top of a
+    frozen :class:`MapsModel` (the paper's second stage; App. "Training details")."""
+
+    loss_names = ("gan_real", "gan_dfr", "cyc_generated", "cyc_real", "G", "D")
+    visual_names = ("diffuse_g", "specular_g", "composite_g", "real", "diffuse_of_real", "real_cycled")
+
+    def __init__(self, config: SpecularConfig = SpecularConfig()):
+        super().__init__()
+        self.config = c = config
+        self.G_sp = define_G(6, 3, c.ngf, c.blocks)
+        self.F_sp = define_G(3, 3, c.ngf, c.blocks)
+        self.D_real = define_D(3, c.rf_image, c.ndf)
+        self.D_dfr = define_D(3, c.rf_image, c.ndf)
+        betas = (c.beta1, 0.999)
+        self.opt_G = torch.optim.Adam([*self.G_sp.parameters(), *self.F_sp.parameters()], lr=c.lr, betas=betas)
+        self.opt_D = torch.optim.Adam([*self.D_real.parameters(), *self.D_dfr.parameters()], lr=c.lr, betas=betas)
+        self.visuals: dict[str, torch.Tensor] = {}
+        self.gradient_hook: Callable[[list[torch.Tensor]], None] | None = None
+
+    def specular(self, normal: torch.Tensor, diffuse_net: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """I_rs = G_sp^real(N, I_df): linear radiance in [0, 1], zero off the object. ``diffuse_net``
+        is the map networks' diffuse image, 2 R_diff − 1."""
+        return mask * (self.G_sp(torch.cat([normal, diffuse_net], 1)) + 1) / 2
+
+    def compose(self, normal: torch.Tensor, diffuse_net: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """The NGP image of the paper (Sec. 5 "NGP"): R_diff / π ⊕ G_sp^real(N, I_df), linear radiance."""
+        return blend((diffuse_net + 1) / 2 / math.pi, self.specular(normal, diffuse_net, mask), mask)
+
+    def forward(self, maps: MapsModel, depth_batch: dict[str, Any], real: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Both cycles on a batch of depth maps and an unpaired batch of real images (linear radiance)."""
+        depth, mask = depth_batch["depth"], depth_batch["mask"]
+        with torch.no_grad():  # the map networks are fixed in this stage
+            z = torch.randn(depth.shape[0], maps.config.latent_dim, device=depth.device)
+            generated = maps.decorate(depth, mask, depth_batch, z)
+            normal_g = generated["normal"]
+            diffuse_g_net = 2 * maps.render_diffuse(normal_g, (generated["albedo"] + 1) / 2, mask,
+                                                    cameras_of(depth_batch)) - 1
+        specular_g = self.specular(normal_g, diffuse_g_net, mask)
+        composite_g = blend((diffuse_g_net + 1) / 2 / math.pi, specular_g, mask)
+        composite_g_net = image_to_net(composite_g)
+        diffuse_cycled_net = self.F_sp(composite_g_net)
+
+        real_net = image_to_net(real)
+        diffuse_of_real_net = self.F_sp(real_net)
+        depth_of_real_net = maps.G_depth(diffuse_of_real_net)  # frozen weights; gradients reach F_sp
+        _, mask_of_real = net_to_depth(depth_of_real_net)
+        # Photographs come without cameras; the paper's views share K, all that normals from depth use.
+        normal_of_real = maps.generate_normals(depth_of_real_net, cameras_of(depth_batch))
+        real_cycled = blend((diffuse_of_real_net + 1) / 2 / math.pi,
+                            self.specular(normal_of_real, diffuse_of_real_net, mask_of_real), mask_of_real)
+        real_cycled_net = image_to_net(real_cycled)
+
+        self._for_d = {"real": (real_net, composite_g_net), "diffuse": (diffuse_g_net, diffuse_of_real_net)}
+        self.visuals = {"diffuse_g": image_to_net((diffuse_g_net + 1) / 2 / math.pi), "specular_g": 2 * specular_g - 1,
+                        "composite_g": composite_g_net, "real": real_net,
+                        "diffuse_of_real": image_to_net((diffuse_of_real_net + 1) / 2 / math.pi),
+                        "real_cycled": real_cycled_net}
+        return {
+            "gan_real": realistic_gan_loss(self.D_real, composite_g_net),
+            "gan_dfr": losses.adversarial_loss(self.D_dfr, diffuse_of_real_net),
+            "cyc_generated": specular_cycle_loss(diffuse_cycled_net, diffuse_g_net),
+            "cyc_real": specular_cycle_loss(real_cycled_net, real_net),
+        }
+
+    def _step(self, optimizer: torch.optim.Optimizer, loss: torch.Tensor) -> None:
+        optimizer_step(optimizer, loss, self.gradient_hook)
+
+    def optimize(self, maps: MapsModel, depth_batch: dict[str, Any], real: torch.Tensor) -> dict[str, float]:
+        """One step: G_sp and F_sp (discriminators and map networks frozen), then D_real and D_dfr."""
+        maps.requires_grad_(False)
+        for D in (self.D_real, self.D_dfr):
+            D.requires_grad_(False)
+        terms = self(maps, depth_batch, real)
+        loss_G = (terms["gan_real"] + terms["gan_dfr"]
+                  + self.config.lambda_cycle * (terms["cyc_generated"] + terms["cyc_real"]))
+        self._step(self.opt_G, loss_G)
+        for D in (self.D_real, self.D_dfr):
+            D.requires_grad_(True)
+        loss_D = (losses.discriminator_loss(self.D_real, *self._for_d["real"])
+                  + losses.discriminator_loss(self.D_dfr, *self._for_d["diffuse"]))
+        self._step(self.opt_D, loss_D)
+        maps.requires_grad_(True)
+        return {**{k: v.item() for k, v in terms.items()}, "G": loss_G.item(), "D": loss_D.item()}

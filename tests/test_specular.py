@@ -1,0 +1,75 @@
+"""G_sp^real (paper Sec. 3.5): the blend, the sRGB encoding it is judged in, and a CPU smoke-train."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from ngp_mi.data.datasets import DepthDataset, ImageFolderDataset
+from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
+from ngp_mi.models.maps import MapsConfig, MapsModel
+from ngp_mi.models.specular import SpecularConfig, SpecularModel, blend, srgb_decode, srgb_encode
+from ngp_mi.viz import linear_to_srgb
+
+TINY_MAPS = MapsConfig(ngf=8, blocks=1, nef=8, ndf=8, rf_maps=(16, 34), rf_albedo=(16,))
+TINY = SpecularConfig(ngf=8, blocks=1, ndf=8, rf_image=(16, 34))
+
+
+def test_srgb_encoding_matches_the_standard_and_has_finite_gradients_at_zero():
+    x = torch.tensor([0.0, 1e-6, 0.0031308, 0.01, 0.2, 0.5, 1.0, 2.0, -1.0], dtype=torch.float64, requires_grad=True)
+    encoded = srgb_encode(x)
+    assert np.allclose(encoded.detach().numpy(), linear_to_srgb(np.clip(x.detach().numpy(), 0, 1)), atol=1e-7)
+    encoded.sum().backward()
+    assert torch.isfinite(x.grad).all() and x.grad[0] == pytest.approx(12.92)
+    assert torch.allclose(srgb_decode(encoded), x.detach().clamp(0, 1), atol=1e-7)
+    # an independent check of the power branch: 0.5 → 1.055 · 0.5^(1/2.4) − 0.055
+    assert encoded[5].item() == pytest.approx(1.055 * 0.5 ** (1 / 2.4) - 0.055, abs=1e-12)
+
+
+def test_blend_adds_specular_light_only_on_the_object():
+    diffuse = torch.full((1, 3, 4, 4), 0.2)
+    specular = torch.full((1, 3, 4, 4), 0.3)
+    mask = torch.zeros(1, 1, 4, 4)
+    mask[..., :2, :] = 1
+    out = blend(diffuse, specular, mask)
+    assert torch.allclose(out[..., :2, :], torch.tensor(0.5)) and torch.allclose(out[..., 2:, :], torch.tensor(0.2))
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    root = tmp_path_factory.mktemp("spec")
+    render_dataset(DatasetConfig(source="chair", num_shapes=2, views=2, resolution=32), root / "maps", progress=False)
+    render_dataset(DatasetConfig(source="chair", num_shapes=2, views=2, resolution=32, channels=("mask",), real_spp=4,
+                                 seed=1), root / "real", progress=False)
+    return (DataLoader(DepthDataset(root / "maps"), batch_size=2),
+            DataLoader(ImageFolderDataset(root / "real", size=32, linear=True), batch_size=2))
+
+
+def test_specular_steps_train_g_sp_and_leave_the_map_networks_alone(data):
+    torch.manual_seed(0)
+    maps, model = MapsModel(TINY_MAPS), SpecularModel(TINY)
+    frozen = [p.detach().clone() for p in maps.parameters()]
+    trained = {name: [p.detach().clone() for p in getattr(model, name).parameters()]
+               for name in ("G_sp", "F_sp", "D_real", "D_dfr")}
+    history = [model.optimize(maps, depth, real) for _ in range(2) for depth, real in zip(*data)]
+    assert all(math.isfinite(v) for step in history for v in step.values())
+    assert set(history[0]) == set(SpecularModel.loss_names) and set(model.visuals) == set(SpecularModel.visual_names)
+    assert all(torch.equal(a, b) for a, b in zip(frozen, maps.parameters()))
+    for name, params in trained.items():
+        assert any(not torch.equal(a, b) for a, b in zip(params, getattr(model, name).parameters())), name
+    assert all(p.requires_grad for p in maps.parameters())  # unfrozen again for a later joint stage
+
+
+def test_composite_is_diffuse_radiance_plus_a_bounded_specular_on_the_object():
+    torch.manual_seed(0)
+    model = SpecularModel(TINY)
+    normal = torch.nn.functional.normalize(torch.randn(2, 3, 32, 32), dim=1)
+    diffuse_net = torch.rand(2, 3, 32, 32) * 2 - 1
+    mask = (torch.rand(2, 1, 32, 32) > 0.5).float()
+    with torch.no_grad():
+        spec = model.specular(normal, diffuse_net, mask)
+        image = model.compose(normal, diffuse_net, mask)
+    assert (spec >= 0).all() and (spec <= 1).all() and (spec * (1 - mask)).abs().max() == 0
+    assert torch.allclose(image - spec, (diffuse_net + 1) / 2 / math.pi, atol=1e-6)
