@@ -82,6 +82,26 @@ def _sample_shapes(args: argparse.Namespace) -> int:
     return 0
 
 
+def _generate(args: argparse.Namespace) -> int:
+    from ngp_mi.lights import load_lights, overhead_rig
+    from ngp_mi.pipeline import generate
+
+    views = []
+    for text in args.views.split(";"):
+        try:
+            theta, phi = (float(x) for x in text.split(","))
+        except ValueError:
+            raise ValueError(f"--views must look like 'THETA,PHI;THETA,PHI' in degrees, got {args.views!r}") from None
+        views.append((theta, phi))
+    lights = overhead_rig() if args.lights == "rig" else load_lights(args.lights)
+    added = load_lights(args.add_lights) if args.add_lights else []
+    summary = generate(args.maps_run, args.out, shape_run=args.shape_run, mesh_path=args.mesh, num=args.num,
+                       seed=args.seed, views=views, resolution=args.res, lights=lights, added_lights=added,
+                       variant=args.variant.replace("-", "_"), exemplar=args.exemplar)
+    print(f"generate: {len(summary['images'])} images in {args.out} (sheet.png, report.md)")
+    return 0
+
+
 def _evaluate(args: argparse.Namespace) -> int:
     from ngp_mi.eval.maps_eval import evaluate_maps
 
@@ -195,6 +215,27 @@ def build_parser() -> argparse.ArgumentParser:
     sample.add_argument("--steps", type=int, default=8, help="interpolation steps (default: %(default)s)")
     sample.add_argument("--spp", type=int, default=16, help="samples per pixel of the previews (default: %(default)s)")
     sample.set_defaults(func=_sample_shapes)
+
+    gen = sub.add_parser("generate", help="NGP images: shapes from G_shape (or a mesh), maps, lights, G_sp^real",
+                         description="Form NGP images (paper Sec. 3): sample shapes with G_shape (or take --mesh), "
+                                     "project them with Mitsuba from the given views, generate normals and albedo, "
+                                     "shade under the lights and blend the realistic specular map. Writes images/, "
+                                     "sheet.png (every intermediate map), generate.json and report.md.")
+    gen.add_argument("--maps-run", required=True, help="a `train maps` output folder (with the [specular] stage for "
+                                                       "ngp / ngp-plus)")
+    gen.add_argument("--shape-run", help="a `train shape` output folder (shapes from z_s)")
+    gen.add_argument("--mesh", help="a user mesh instead of sampled shapes")
+    gen.add_argument("--out", required=True, help="output folder")
+    gen.add_argument("--num", type=int, default=4, help="shapes to sample (default: %(default)s)")
+    gen.add_argument("--seed", type=int, default=0, help="seed of z_s and z_da of the first shape (default: %(default)s)")
+    gen.add_argument("--views", default="10,-30;10,30", help="camera views 'THETA,PHI;…' in degrees (default: %(default)s)")
+    gen.add_argument("--res", type=int, default=128, help="image size (default: %(default)s)")
+    gen.add_argument("--lights", default="rig", help="'rig' (the 4 overhead lights) or a lights JSON file")
+    gen.add_argument("--add-lights", help="a lights JSON file of lights added by R_BP (variant ngp-plus)")
+    gen.add_argument("--variant", default="ngp", choices=["ngp", "ngp-bp", "ngp-plus", "no-sp", "no-gn", "no-gda"],
+                     help="NGP variant or ablation (default: %(default)s)")
+    gen.add_argument("--exemplar", help="an albedo image: its appearance code (E_da) instead of a sampled z_da")
+    gen.set_defaults(func=_generate)
 
     evaluate = sub.add_parser("evaluate", help="evaluate trained map networks on held-out maps (normal error, albedo)",
                               description="Normal angular error of G_n from a coarse depth against normals from the "

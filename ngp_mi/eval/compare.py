@@ -198,42 +198,18 @@ def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: G
             return image[0].permute(1, 2, 0).numpy() / math.pi
         return run
 
-    view = {"K": torch.tensor(camera.K, dtype=torch.float32)[None], "E": torch.tensor(camera.E, dtype=torch.float32)[None],
-            "bounds": torch.tensor(content.bounds, dtype=torch.float32)[None]}
-    blinn_phong = {"mode": "blinn_phong", "k_d": config.k_d, "k_s": config.k_s, "alpha": config.alpha}
-
     def neural(variant: str) -> Callable[[], np.ndarray]:
-        """One NGP variant on this view. Maps are generated from the ground-truth depth with the
-        appearance code μ(E_da(ground-truth albedo)) (the exemplar handle). Variants (paper Sec. 5,
-        App. "NGP variants", ablations): ``bp`` R_BP under the setup's lights; ``no_sp`` R_diff only;
-        ``ngp`` R_diff ⊕ G_sp^real(N^g, I_df^g), G_sp^real conditioned on the diffuse image under
-        the training rig (its input domain); ``no_gn`` / ``no_gda`` NGP with normals from the depth
-        map / a white albedo; ``plus`` NGP under the rig plus R_BP of the lights beyond the rig."""
-        from ngp_mi.render.maps import normals_from_depth
+        """One NGP variant (:func:`ngp_mi.pipeline.ngp_image`) on this view, from the ground-truth depth,
+        with the appearance code μ(E_da(ground-truth albedo)) (the exemplar handle)."""
+        from ngp_mi.pipeline import Constants, ngp_image
 
         def run() -> np.ndarray:
             t = maps_to_tensors(gbuffer.render(camera))
-            mask = t["mask"]
             with torch.no_grad():
                 mu, _ = model.E_da(2 * t["albedo"] - 1)
-                if variant == "no_gn":
-                    normal = normals_from_depth(t["depth"], mask, camera)
-                    albedo_net = model.G_da(torch.cat([model.noc(t["depth"], mask, view), normal], 1), mu)
-                else:
-                    generated = model.decorate(t["depth"], mask, view, mu)
-                    normal, albedo_net = generated["normal"], generated["albedo"]
-                albedo = torch.ones_like(albedo_net) if variant == "no_gda" else (albedo_net + 1) / 2
-                if variant == "bp":
-                    image = shade(normal, albedo, mask, lights, camera, **blinn_phong) / math.pi
-                else:
-                    diffuse_lights = overhead_rig() if variant == "plus" else lights
-                    image = shade(normal, albedo, mask, diffuse_lights, camera, mode="diffuse", k_d=config.k_d) / math.pi
-                    if variant != "no_sp":
-                        base = 2 * model.render_diffuse(normal, albedo, mask, [camera]) - 1
-                        image = image + specular.specular(normal, base, mask)
-                    if variant == "plus":
-                        image = image + shade(normal, albedo, mask, extra, camera, **blinn_phong) / math.pi
-            return image[0].permute(1, 2, 0).numpy()
+            result = ngp_image(model, specular, t["depth"], t["mask"], camera, content.bounds, mu, lights, variant,
+                               extra, Constants(config.k_d, config.k_s, config.alpha))
+            return result["image"][0].permute(1, 2, 0).numpy()
         return run
 
     methods: list[tuple[str, str, Callable[[], np.ndarray]]] = [
@@ -252,7 +228,7 @@ def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: G
     if model is not None:
         methods += [
             (f"NGP-BP: R_BP on generated maps (k_d {config.k_d}, k_s {config.k_s}, α {config.alpha:g})", "neural",
-             neural("bp")),
+             neural("ngp_bp")),
             ("NGP w/o G_sp^real: R_diff on generated maps", "neural", neural("no_sp")),
         ]
     if model is not None and specular is not None:
@@ -260,7 +236,7 @@ def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: G
                     ("NGP w/o G_n: normals from the depth map", "neural", neural("no_gn")),
                     ("NGP w/o G_da: white albedo", "neural", neural("no_gda"))]
         if extra and len(extra) < len(lights):
-            methods.append(("NGP-plus: NGP under the rig + R_BP of the added lights", "neural", neural("plus")))
+            methods.append(("NGP-plus: NGP under the rig + R_BP of the added lights", "neural", neural("ngp_plus")))
     rows = [{"method": "reference", "kind": "reference", "seconds": reference_time, "spp": config.reference_spp}]
     tiles, errors, labels = [to_uint8(reference)], [np.zeros_like(mask)], ["reference"]
     images: dict[str, tuple[np.ndarray, np.ndarray]] = {}
