@@ -93,6 +93,10 @@ class MapsModel(nn.Module):
         self.config = config
         c = config
         self.G_n = define_G(1, 3, c.ngf, c.blocks)
+        if c.normal_residual:  # start from the depth's own normals: the correction's last layer is zero
+            last = self.G_n.decoder[-2]
+            nn.init.zeros_(last.weight)
+            nn.init.zeros_(last.bias)
         self.G_da = define_G(6, 3, c.ngf, c.blocks, latent_dim=c.latent_dim)
         self.G_depth = define_G(3, 1, c.ngf, c.blocks)
         self.E_da = define_E(3, c.latent_dim, c.nef)
