@@ -135,7 +135,7 @@ def generate(maps_run: str | Path, out: str | Path, shape_run: str | Path | None
     """``ngp-mi generate``: ``num`` shapes (z_s of ``seed`` …, or the user's mesh) × ``views`` (θ, φ in
     degrees); writes ``images/*.png``, ``sheet.png`` (depth, normals, albedo, specular, image per
     row), ``generate.json`` and ``report.md``."""
-    from ngp_mi.data.datasets import ImageFolderDataset
+    from ngp_mi.data.datasets import read_image
     from ngp_mi.geometry.loaders import load_mesh
     from ngp_mi.viz import contact_sheet, save_png, to_uint8
 
@@ -147,11 +147,9 @@ def generate(maps_run: str | Path, out: str | Path, shape_run: str | Path | None
     ngp = NGP(maps_run, shape_run if mesh_path is None else None)
     exemplar_tensor = None
     if exemplar:
-        dataset = ImageFolderDataset(Path(exemplar).parent, size=resolution, flip=False, linear=True)
-        matches = [i for i, f in enumerate(dataset.files) if f.resolve() == Path(exemplar).resolve()]
-        if not matches:
-            raise ValueError(f"{exemplar}: not a readable image (PNG / JPEG / EXR)")
-        exemplar_tensor = dataset[matches[0]][None]
+        albedo = torch.from_numpy(np.ascontiguousarray(read_image(Path(exemplar), resolution, linear=True)))
+        exemplar_tensor = torch.nn.functional.interpolate(albedo.permute(2, 0, 1)[None], size=(resolution, resolution),
+                                                          mode="bilinear", align_corners=False)
     shapes = [("mesh", load_mesh(mesh_path))] if mesh_path else []
     for k in range(0 if mesh_path else num):
         z_s = torch.randn(ngp.shape_model.config.z_dim, generator=torch.Generator().manual_seed(seed + k))

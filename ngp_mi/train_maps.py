@@ -194,22 +194,20 @@ def train_maps(config_path: str | Path, log=print) -> Path:
         real_root = prepare_real_images(config["data"], config["specular"], rank)
         real_batches = _Batches(ImageFolderDataset(real_root, size=config["data"].get("resolution", 64), linear=True),
                                 train["batch_size"], seed + 2 * 10 ** 6, rank, world)
+        modules.update({name: getattr(specular, name) for name in SPECULAR_NETWORKS})
+        optimizers.update(opt_sp_G=specular.opt_G, opt_sp_D=specular.opt_D)
     step = 0
     checkpoints = list_checkpoints(out)
     if checkpoints:
-        has_specular = specular is not None and "G_sp" in saved_modules(checkpoints[-1])
-        if has_specular:
-            modules.update({name: getattr(specular, name) for name in SPECULAR_NETWORKS})
-            optimizers.update(opt_sp_G=specular.opt_G, opt_sp_D=specular.opt_D)
-        state = load_checkpoint(checkpoints[-1], modules)
+        # A checkpoint from before the [specular] table holds the map networks only: the stage starts fresh.
+        saved = saved_modules(checkpoints[-1])
+        state = load_checkpoint(checkpoints[-1], {k: m for k, m in modules.items() if k in saved or k in NETWORKS})
         for key, optimizer in optimizers.items():
-            optimizer.load_state_dict(state[key])
+            if key in state:
+                optimizer.load_state_dict(state[key])
         step = int(state["step"])
         if rank == 0:
             log(f"train maps: resuming from {checkpoints[-1]} (step {step})")
-    if specular is not None:
-        modules.update({name: getattr(specular, name) for name in SPECULAR_NETWORKS})
-        optimizers.update(opt_sp_G=specular.opt_G, opt_sp_D=specular.opt_D)
     if rank == 0:
         log(f"train maps: {world} process(es) on {device}")
     if world > 1:

@@ -63,6 +63,34 @@ class DepthDataset(ReflectanceMapDataset):
         super().__init__(root, channels=("depth", "mask"))
 
 
+def read_image(path: Path, size: int | None = None, linear: bool = False) -> np.ndarray:
+    """(H, W, 3) float32 of an image file. PNG / JPEG are sRGB (resized to ``size``² when given)
+    and returned as such unless ``linear``; EXR (an ``rgb`` layer) is linear and returned as such
+    unless ``linear=False`` (resize it with the caller's tensor ops)."""
+    from PIL import Image
+
+    from ngp_mi.viz import linear_to_srgb
+
+    path = Path(path)
+    if path.suffix.lower() == ".exr":
+        channels = read_exr(path)
+        rgb = channels.get("rgb")
+        if rgb is None:
+            raise ValueError(f"{path}: EXR image needs an 'rgb' layer, has {sorted(channels)}")
+        return rgb if linear else linear_to_srgb(rgb)
+    try:
+        with Image.open(path) as im:
+            im = im.convert("RGB")
+            if size and im.size != (size, size):
+                im = im.resize((size, size), Image.BILINEAR)
+            image = np.asarray(im, dtype=np.float32) / 255.0
+    except OSError as exc:
+        raise ValueError(f"{path}: unreadable image ({exc})") from None
+    if linear:
+        image = np.where(image <= 0.04045, image / 12.92, ((image + 0.055) / 1.055) ** 2.4)
+    return image
+
+
 class ImageFolderDataset(Dataset):
     """RGB images in [0, 1] as (3, H, W) float32, optionally resized and randomly flipped.
 
@@ -87,32 +115,8 @@ class ImageFolderDataset(Dataset):
     def __len__(self) -> int:
         return len(self.files)
 
-    def _load(self, path: Path) -> np.ndarray:
-        from PIL import Image
-
-        from ngp_mi.viz import linear_to_srgb
-
-        if path.suffix.lower() == ".exr":
-            channels = read_exr(path)
-            rgb = channels.get("rgb")
-            if rgb is None:
-                raise ValueError(f"{path}: EXR image needs an 'rgb' layer, has {sorted(channels)}")
-            image = rgb if self.linear else linear_to_srgb(rgb)  # resized in __getitem__
-        else:
-            try:
-                with Image.open(path) as im:
-                    im = im.convert("RGB")
-                    if self.size and im.size != (self.size, self.size):
-                        im = im.resize((self.size, self.size), Image.BILINEAR)
-                    image = np.asarray(im, dtype=np.float32) / 255.0
-            except OSError as exc:
-                raise ValueError(f"{path}: unreadable image ({exc})") from None
-            if self.linear:
-                image = np.where(image <= 0.04045, image / 12.92, ((image + 0.055) / 1.055) ** 2.4)
-        return image
-
     def __getitem__(self, index: int) -> torch.Tensor:
-        image = _chw(self._load(self.files[index]))
+        image = _chw(read_image(self.files[index], self.size, self.linear))
         if self.size and image.shape[-2:] != (self.size, self.size):
             image = torch.nn.functional.interpolate(image[None], size=(self.size, self.size), mode="bilinear",
                                                     align_corners=False)[0]

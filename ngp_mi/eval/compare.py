@@ -159,17 +159,16 @@ def add_distribution_distances(summary: list[dict[str, Any]], images: dict[str, 
     """FID and KID of each method's sRGB images against the reference images of the same views."""
     from ngp_mi.eval.metrics import fid_from_features, kernel_inception_distance
 
-    cache: dict[int, np.ndarray] = {}
+    reference_features: dict[int, np.ndarray] = {}  # per reference image (methods share them)
     for entry in summary:
         pairs = images.get(entry["method"])
         if not pairs or len(pairs) < 2:
             continue
         log(f"compare: FID / KID of {entry['method']} ({len(pairs)} images)")
-        key = id(pairs[0][0])
-        reference = cache.get(key)
-        if reference is None or len(reference) != len(pairs):
-            reference = inception([linear_to_srgb(r) for r, _ in pairs])
-            cache[key] = reference
+        new = [r for r, _ in pairs if id(r) not in reference_features]
+        if new:
+            reference_features.update(zip(map(id, new), inception([linear_to_srgb(r) for r in new])))
+        reference = np.stack([reference_features[id(r)] for r, _ in pairs])
         features = inception([linear_to_srgb(t) for _, t in pairs])
         entry["fid"] = fid_from_features(reference, features)
         entry["kid"] = kernel_inception_distance(reference, features)
