@@ -144,14 +144,17 @@ class MapsModel(nn.Module):
         from_depth = normals_from_depth(depth, mask, cameras)
         return torch.where(mask > 0, torch.nn.functional.normalize(from_depth + raw, dim=1, eps=1e-6), raw)
 
-    def decorate(self, depth: torch.Tensor, mask: torch.Tensor, views: dict[str, Any],
-                 z: torch.Tensor) -> dict[str, torch.Tensor]:
+    def decorate(self, depth: torch.Tensor, mask: torch.Tensor, views: dict[str, Any], z: torch.Tensor,
+                 cameras: list[Camera] | None = None) -> dict[str, torch.Tensor]:
         """The maps NGP generates for a depth map (paper Eq. image formation, inside R_BP):
-        N^g = G_n(d), I_da^g = G_da(NOC(d), N^g, z_da). ``views`` holds K, E and bounds per image.
+        N^g = G_n(d), I_da^g = G_da(NOC(d), N^g, z_da). ``views`` holds K, E and bounds per image;
+        ``cameras`` are its cameras when the caller has them (built from ``views`` otherwise).
         Returns network-space ``depth``, ``noc``, ``albedo`` (2x − 1) and unit-length-ish ``normal``."""
         depth_net = depth_to_net(depth, mask)
         noc = self.noc(depth, mask, views)
-        normal = self.generate_normals(depth_net, cameras_of(views, depth.shape[-2:]) if self.config.normal_residual else [])
+        if cameras is None and self.config.normal_residual:
+            cameras = cameras_of(views, depth.shape[-2:])
+        normal = self.generate_normals(depth_net, cameras or [])
         return {"depth": depth_net, "noc": noc, "normal": normal, "albedo": self.G_da(torch.cat([noc, normal], 1), z)}
 
     # ------------------------------------------------------------------ one step
@@ -160,7 +163,7 @@ class MapsModel(nn.Module):
         cams_d, cams_m = cameras_of(depth_batch), cameras_of(maps_batch)
         d_r, m_d = depth_batch["depth"], depth_batch["mask"]
         z = torch.randn(d_r.shape[0], self.config.latent_dim, device=d_r.device)
-        top = self.decorate(d_r, m_d, depth_batch, z)
+        top = self.decorate(d_r, m_d, depth_batch, z, cams_d)
         d_r_net, noc_r, normal_g, albedo_g_net = top["depth"], top["noc"], top["normal"], top["albedo"]
         diffuse_g = self.render_diffuse(normal_g, (albedo_g_net + 1) / 2, m_d, cams_d)
         diffuse_g_net = 2 * diffuse_g - 1

@@ -66,6 +66,11 @@ def image_to_net(radiance: torch.Tensor) -> torch.Tensor:
     return 2 * srgb_encode(radiance) - 1
 
 
+def diffuse_radiance(diffuse_net: torch.Tensor) -> torch.Tensor:
+    """The map networks' diffuse image (2 R_diff − 1) as linear radiance, R_diff / π."""
+    return (diffuse_net + 1) / 2 / math.pi
+
+
 def blend(diffuse_radiance: torch.Tensor, specular: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """⊕ of the paper's image formation (Sec. 3.5): I_c = I_df ⊕ I_rs = I_df + M ⊙ I_rs, linear radiance."""
     return diffuse_radiance + mask * specular
@@ -108,19 +113,19 @@ class SpecularModel(nn.Module):
 
     def compose(self, normal: torch.Tensor, diffuse_net: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """The NGP image of the paper (Sec. 5 "NGP"): R_diff / π ⊕ G_sp^real(N, I_df), linear radiance."""
-        return blend((diffuse_net + 1) / 2 / math.pi, self.specular(normal, diffuse_net, mask), mask)
+        return blend(diffuse_radiance(diffuse_net), self.specular(normal, diffuse_net, mask), mask)
 
     def forward(self, maps: MapsModel, depth_batch: dict[str, Any], real: torch.Tensor) -> dict[str, torch.Tensor]:
         """Both cycles on a batch of depth maps and an unpaired batch of real images (linear radiance)."""
         depth, mask = depth_batch["depth"], depth_batch["mask"]
+        cameras = cameras_of(depth_batch)
         with torch.no_grad():  # the map networks are fixed in this stage
             z = torch.randn(depth.shape[0], maps.config.latent_dim, device=depth.device)
-            generated = maps.decorate(depth, mask, depth_batch, z)
+            generated = maps.decorate(depth, mask, depth_batch, z, cameras)
             normal_g = generated["normal"]
-            diffuse_g_net = 2 * maps.render_diffuse(normal_g, (generated["albedo"] + 1) / 2, mask,
-                                                    cameras_of(depth_batch)) - 1
+            diffuse_g_net = 2 * maps.render_diffuse(normal_g, (generated["albedo"] + 1) / 2, mask, cameras) - 1
         specular_g = self.specular(normal_g, diffuse_g_net, mask)
-        composite_g = blend((diffuse_g_net + 1) / 2 / math.pi, specular_g, mask)
+        composite_g = blend(diffuse_radiance(diffuse_g_net), specular_g, mask)
         composite_g_net = image_to_net(composite_g)
         diffuse_cycled_net = self.F_sp(composite_g_net)
 
@@ -129,15 +134,13 @@ class SpecularModel(nn.Module):
         depth_of_real_net = maps.G_depth(diffuse_of_real_net)  # frozen weights; gradients reach F_sp
         _, mask_of_real = net_to_depth(depth_of_real_net)
         # Photographs come without cameras; the paper's views share K, all that normals from depth use.
-        normal_of_real = maps.generate_normals(depth_of_real_net, cameras_of(depth_batch))
-        real_cycled = blend((diffuse_of_real_net + 1) / 2 / math.pi,
-                            self.specular(normal_of_real, diffuse_of_real_net, mask_of_real), mask_of_real)
-        real_cycled_net = image_to_net(real_cycled)
+        normal_of_real = maps.generate_normals(depth_of_real_net, cameras)
+        real_cycled_net = image_to_net(self.compose(normal_of_real, diffuse_of_real_net, mask_of_real))
 
         self._for_d = {"real": (real_net, composite_g_net), "diffuse": (diffuse_g_net, diffuse_of_real_net)}
-        self.visuals = {"diffuse_g": image_to_net((diffuse_g_net + 1) / 2 / math.pi), "specular_g": 2 * specular_g - 1,
+        self.visuals = {"diffuse_g": image_to_net(diffuse_radiance(diffuse_g_net)), "specular_g": 2 * specular_g - 1,
                         "composite_g": composite_g_net, "real": real_net,
-                        "diffuse_of_real": image_to_net((diffuse_of_real_net + 1) / 2 / math.pi),
+                        "diffuse_of_real": image_to_net(diffuse_radiance(diffuse_of_real_net)),
                         "real_cycled": real_cycled_net}
         return {
             "gan_real": realistic_gan_loss(self.D_real, composite_g_net),
