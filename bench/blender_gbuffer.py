@@ -2,7 +2,7 @@
 
 Run by ``bench_dataset.py`` with the Python of ``.venv-blender`` (PyPI ``bpy``, which needs
 numpy < 2, hence its own virtualenv):  python blender_gbuffer.py JOB.json
-JOB.json: {"resolution": R, "threads": T, "out": DIR, "write": true|false,
+JOB.json: {"resolution": R, "threads": T, "out": DIR, "write": true|false, "codec": "ZIP"|"RLE"|"NONE"|...,
            "shapes": [{"npz": PATH, "cameras": [[16 floats], ...]}]}
 where each npz has vertices (V, 3), faces (F, 3), part_ids (F,), albedo (P, 3), and each camera is a
 row-major 4x4 camera-to-world matrix in Blender's camera axes. Prints one JSON line of timings.
@@ -17,7 +17,7 @@ import numpy as np
 from mathutils import Matrix
 
 
-def setup(resolution: int, threads: int) -> bpy.types.Object:
+def setup(resolution: int, threads: int, codec: str) -> bpy.types.Object:
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     scene.render.engine = "CYCLES"
@@ -35,7 +35,7 @@ def setup(resolution: int, threads: int) -> bpy.types.Object:
     settings.media_type = "MULTI_LAYER_IMAGE"  # Blender 5: multilayer EXR (was OPEN_EXR_MULTILAYER)
     settings.file_format = "OPEN_EXR_MULTILAYER"
     settings.color_depth = "32"
-    settings.exr_codec = "ZIP"
+    settings.exr_codec = codec
     layer = scene.view_layers[0]
     layer.use_pass_z = layer.use_pass_normal = layer.use_pass_diffuse_color = layer.use_pass_position = True
     camera_data = bpy.data.cameras.new("camera")
@@ -64,7 +64,7 @@ def add_mesh(path: str) -> bpy.types.Object:
 
 def main() -> None:
     job = json.load(open(sys.argv[1]))
-    camera = setup(job["resolution"], job["threads"])
+    camera = setup(job["resolution"], job["threads"], job.get("codec", "ZIP"))
     times, count = [], 0
     for s, shape in enumerate(job["shapes"]):
         obj = add_mesh(shape["npz"])

@@ -81,6 +81,74 @@ def test_shards_split_the_work_and_merge(tmp_path):
         parse_shard("2/2")
 
 
+def maps_of(root):
+    """Every view's maps by (shape id, view), read through read_exr (display-window arrays)."""
+    return {(r["shape_id"], r["view"]): read_exr(root / r["files"]["maps"]) for r in load_manifest(root)}
+
+
+def assert_same_maps(a, b):
+    assert a.keys() == b.keys()
+    for key in a:
+        for channel in a[key]:
+            np.testing.assert_array_equal(a[key][channel], b[key][channel], err_msg=f"{key} {channel}")
+
+
+def test_maps_are_stored_in_the_object_rectangle(tmp_path):
+    import OpenEXR
+
+    run(tmp_path / "window")
+    run(tmp_path / "full", full_window=True)
+    record = load_manifest(tmp_path / "window")[0]
+    header = OpenEXR.File(str(tmp_path / "window" / record["files"]["maps"])).header()
+    (x0, y0), (x1, y1) = (list(c) for c in header["dataWindow"])
+    mask = read_exr(tmp_path / "window" / record["files"]["maps"])["mask"]
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    assert (x0, y0, x1, y1) == (cols[0], rows[0], cols[-1], rows[-1]) and (x1 - x0 + 1) * (y1 - y0 + 1) < 24 * 24
+    assert_same_maps(maps_of(tmp_path / "window"), maps_of(tmp_path / "full"))
+
+
+def test_a_resume_may_change_how_maps_are_stored(tmp_path):
+    """Codec and window are storage, not content: a resumed folder may mix them; other settings may not."""
+    run(tmp_path / "ref", views=3)
+    run(tmp_path / "mixed", views=3)
+    manifest = tmp_path / "mixed" / "manifest.jsonl"
+    manifest.write_text("\n".join(manifest.read_text().splitlines()[:2]) + "\n")
+    summary = run(tmp_path / "mixed", views=3, compression="zip", full_window=True)
+    assert summary["views_before"] == 2 and summary["views_rendered"] == 4
+    assert_same_maps(maps_of(tmp_path / "mixed"), maps_of(tmp_path / "ref"))
+    with pytest.raises(ValueError, match=r"other settings \(views\)"):
+        run(tmp_path / "mixed", views=4, compression="zip")
+
+
+def test_worker_processes_write_what_one_process_writes(tmp_path):
+    config = DatasetConfig(source="chair", num_shapes=3, views=2, resolution=20, real_spp=2)
+    render_dataset(config, tmp_path / "one", progress=False)
+    summary = render_dataset(config, tmp_path / "two", progress=False, workers=2)
+    assert summary["views_rendered"] == 6 and summary["workers"] == 2 and not summary["skipped_shapes"]
+    assert sorted(p.name for p in (tmp_path / "two").glob("manifest*.jsonl")) == [
+        "manifest.shard-0-of-2.jsonl", "manifest.shard-1-of-2.jsonl"]
+    assert_same_maps(maps_of(tmp_path / "two"), maps_of(tmp_path / "one"))
+    one, two = load_manifest(tmp_path / "one"), load_manifest(tmp_path / "two")
+    assert [(r["shape_id"], r["view"], r["E"], r["lights"]) for r in one] == [
+        (r["shape_id"], r["view"], r["E"], r["lights"]) for r in two]
+    for a, b in zip(one, two):
+        np.testing.assert_array_equal(read_exr(tmp_path / "one" / a["files"]["real"])["rgb"],
+                                      read_exr(tmp_path / "two" / b["files"]["real"])["rgb"])
+    again = render_dataset(config, tmp_path / "two", progress=False)  # another worker count resumes it
+    assert again["views_before"] == 6 and again["views_rendered"] == 0
+
+
+def test_shards_started_together_share_one_folder(tmp_path):
+    cli = [sys.executable, "-m", "ngp_mi.cli", "render-dataset", "--source", "car", "--num-shapes", "4",
+           "--views", "1", "--res", "16", "--workers", "1", "--quiet", "--out", str(tmp_path)]
+    shards = [subprocess.Popen(cli + ["--shard", f"{k}/2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True) for k in range(2)]
+    for shard in shards:
+        _, err = shard.communicate(timeout=300)
+        assert shard.returncode == 0, err
+    assert len(load_manifest(tmp_path)) == 4 and not list(tmp_path.glob(".dataset.*"))
+
+
 def _mesh_folder(tmp_path):
     folder = tmp_path / "meshes"
     folder.mkdir()

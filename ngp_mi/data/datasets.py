@@ -20,7 +20,7 @@ import torch
 from torch.utils.data import Dataset
 
 from ngp_mi.data.exr import read_exr
-from ngp_mi.data.render_dataset import load_manifest
+from ngp_mi.data.manifest import load_manifest
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
 

@@ -11,28 +11,41 @@ Layout of ``OUT``::
 
 A view is finished once its manifest line is written, which happens after its files were
 written atomically: a killed run leaves no partial file and a re-run renders only what is
-missing. ``--shard K/N`` takes every N-th shape starting at K, so N processes (or machines) can
-share the work; each writes its own manifest, and :func:`load_manifest` reads them all.
+missing (whatever shard or worker rendered the rest). ``--shard K/N`` takes every N-th shape
+starting at K, so N processes (or machines) can share the work; each writes its own manifest,
+and :func:`load_manifest` reads them all.
+
+Speed (``bench/RESULTS.md``): all views of a shape are rendered by one kernel
+(:meth:`GBufferRenderer.render_views`); maps are stored in the object's bounding rectangle (the
+EXR data window; ``full_window`` stores every pixel) with RLE compression by default; and
+``workers`` processes split a shard like ``--shard`` does, each with Dr.Jit on one thread and
+one writer thread. Processes rather than threads: in one process Dr.Jit's worker threads spin for
+a while after every kernel and the EXR writers share the GIL, which costs ~1.5x the core time per
+view here.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import functools
 import json
 import logging
+import multiprocessing
 import os
 import platform
 import queue
-import threading
+import tempfile
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 
 from ngp_mi import __version__, backend
 from ngp_mi.camera import Camera, ViewDistribution
-from ngp_mi.data.exr import write_exr
+from ngp_mi.data.exr import COMPRESSIONS, nonzero_windows, write_exr
+from ngp_mi.data.manifest import BackgroundWriter, ManifestWriter, load_manifest, manifest_records
 from ngp_mi.data.sources import SourceItem, autoencoded_items, resolve_source
 from ngp_mi.lights import DirectionalLight, Light, overhead_rig
 from ngp_mi.render.gbuffer import CHANNELS, GBufferRenderer
@@ -41,6 +54,8 @@ from ngp_mi.viz import save_png, to_uint8
 
 log = logging.getLogger("ngp_mi.render_dataset")
 LIGHT_MODES = ("rig", "random", "scene")
+STORAGE_SETTINGS = ("compression", "full_window")  # how maps are stored, not what they hold: may change on resume
+__all__ = ["DatasetConfig", "load_manifest", "parse_shard", "render_dataset", "view_cameras", "view_lights"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,7 +68,8 @@ class DatasetConfig:
     real_spp: int = 0
     lights: str = "rig"
     seed: int = 0
-    compression: str = "zip"
+    compression: str = "rle"
+    full_window: bool = False  # store every pixel, not only the object's bounding rectangle
     half: bool = False  # store every channel but depth as 16-bit float
     coarse_shapes: str | None = None  # a `train shape` run: render the shapes as its autoencoder reconstructs them
     coarse_resolution: int = 64       # marching-cubes grid of those reconstructions
@@ -70,6 +86,8 @@ class DatasetConfig:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
         if self.real_spp < 0:
             raise ValueError(f"--real-spp must be >= 0, got {self.real_spp}")
+        if self.compression not in COMPRESSIONS:
+            raise ValueError(f"--compression must be one of {sorted(COMPRESSIONS)}, got {self.compression!r}")
 
     def to_json(self) -> dict[str, Any]:
         data = dataclasses.asdict(self)
@@ -103,10 +121,15 @@ def view_cameras(config: DatasetConfig, shape_index: int) -> list[Camera]:
                                            resolution=config.resolution)
 
 
+@functools.lru_cache(maxsize=1)
+def _rig() -> tuple[Light, ...]:
+    return tuple(overhead_rig())  # the same for every view: built once (it is 10 % of a view's time)
+
+
 def view_lights(config: DatasetConfig, shape_index: int, view: int) -> list[Light]:
     """Lights of one view: the overhead rig, or 1–4 random white-ish directional lights."""
     if config.lights != "random":
-        return overhead_rig()
+        return list(_rig())
     rng = np.random.default_rng([config.seed, shape_index, view, 7])
     lights = []
     for _ in range(int(rng.integers(1, 5))):
@@ -116,102 +139,6 @@ def view_lights(config: DatasetConfig, shape_index: int, view: int) -> list[Ligh
     return lights
 
 
-def read_jsonl(path: Path) -> list[dict[str, Any]]:
-    """Records of a JSON-lines file; a torn last line (a killed writer) is ignored."""
-    records = []
-    if path.exists():
-        for line in path.read_text().splitlines():
-            try:
-                records.append(json.loads(line))
-            except json.JSONDecodeError:
-                log.warning("%s: ignoring a torn line", path)
-    return records
-
-
-def load_manifest(root: str | Path) -> list[dict[str, Any]]:
-    """All view records of a dataset folder (every shard's manifest), sorted by (shape, view)."""
-    root = Path(root)
-    records = {}
-    for path in sorted(root.glob("manifest*.jsonl")):
-        for record in read_jsonl(path):
-            records[(record["shape_id"], record["view"])] = record
-    if not records:
-        raise ValueError(f"{root}: no manifest*.jsonl with records; render the dataset first")
-    return [records[k] for k in sorted(records)]
-
-
-class _ManifestWriter:
-    """Appends records, one line each; drops a torn last line left by a killed run first.
-
-    Each line is flushed to the OS, which survives the process being killed (the failure a long
-    job must tolerate); it is not fsync'ed per view (1 ms each), so a power loss may lose the last
-    records, whose views are then simply rendered again.
-    """
-
-    def __init__(self, path: Path):
-        self.path = path
-        if path.exists():
-            text = path.read_bytes()
-            if text and not text.endswith(b"\n"):
-                path.write_bytes(text[: text.rfind(b"\n") + 1])
-        self.file = open(path, "a")
-
-    def append(self, record: dict[str, Any]) -> None:
-        self.file.write(json.dumps(record) + "\n")
-        self.file.flush()
-
-    def close(self) -> None:
-        self.file.flush()
-        os.fsync(self.file.fileno())
-        self.file.close()
-
-
-class _BackgroundWriter:
-    """Writes each view's files and then its manifest line on ``threads`` threads.
-
-    EXR compression releases the GIL for part of its work, so writes overlap each other and the
-    next view's rendering. A view's line follows its own files; lines of different views may come
-    in any order (readers sort). A failed write (disk full, permissions) stops the job at the
-    next submit.
-    """
-
-    def __init__(self, manifest: _ManifestWriter, threads: int = 2, depth: int = 8):
-        self.manifest = manifest
-        self.jobs: queue.Queue = queue.Queue(maxsize=depth)
-        self.error: BaseException | None = None
-        self.lock = threading.Lock()
-        self.threads = [threading.Thread(target=self._run, name=f"render-dataset-writer-{i}", daemon=True)
-                        for i in range(threads)]
-        for thread in self.threads:
-            thread.start()
-
-    def submit(self, write: Callable[[], None], record: dict[str, Any], done: Callable[[], None]) -> None:
-        if self.error is not None:
-            raise self.error
-        self.jobs.put((write, record, done))
-
-    def _run(self) -> None:
-        while (job := self.jobs.get()) is not None:
-            write, record, done = job
-            if self.error is None:
-                try:
-                    write()
-                    with self.lock:
-                        self.manifest.append(record)
-                        done()
-                except BaseException as exc:  # reported to the main thread
-                    self.error = exc
-
-    def close(self) -> None:
-        for _ in self.threads:
-            self.jobs.put(None)
-        for thread in self.threads:
-            thread.join()
-        self.manifest.close()
-        if self.error is not None:
-            raise self.error
-
-
 def _check_settings(out: Path, config: DatasetConfig) -> None:
     settings = out / "dataset.json"
     current = config.to_json()
@@ -219,94 +146,221 @@ def _check_settings(out: Path, config: DatasetConfig) -> None:
         previous = json.loads(settings.read_text())
         # a setting added after the folder was rendered counts as its default
         defaults = json.loads(json.dumps(DatasetConfig(source=config.source).to_json()))
-        changed = {k for k in current if previous.get(k, defaults[k]) != json.loads(json.dumps(current[k]))}
+        changed = {k for k in current if k not in STORAGE_SETTINGS
+                   and previous.get(k, defaults[k]) != json.loads(json.dumps(current[k]))}
         if changed:
             raise ValueError(f"{settings}: this folder was rendered with other settings ({', '.join(sorted(changed))}); "
                              "use a new --out or the same settings to resume")
-    else:
-        tmp = settings.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(current, indent=1) + "\n")
+    else:  # a temporary name of its own: shards started together must not share one
+        fd, tmp = tempfile.mkstemp(prefix=".dataset.", suffix=".json", dir=out)
+        with os.fdopen(fd, "w") as f:
+            f.write(json.dumps(current, indent=1) + "\n")
         os.replace(tmp, settings)
 
 
-def render_dataset(config: DatasetConfig, out: str | Path, shard: tuple[int, int] = (0, 1),
-                   strict: bool = False, progress: bool = True) -> dict[str, Any]:
-    """Render (or finish rendering) this shard of the dataset; returns the summary."""
-    from tqdm import tqdm
 
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    handler = logging.FileHandler(out / "render-dataset.log")
-    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+
+def default_workers() -> int:
+    """One process per core (at most 8) on the CPU; one on a GPU, which a single process fills."""
+    if backend.load().is_cuda:
+        return 1
+    return max(1, min(8, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1))
+
+
+@contextlib.contextmanager
+def _logging_to(out: Path) -> Iterator[None]:
+    handler = logging.FileHandler(out / "render-dataset.log")  # append mode: workers share the file
+    handler.setFormatter(logging.Formatter("%(asctime)s %(process)d %(levelname)s %(message)s"))
     log.addHandler(handler)
     log.setLevel(logging.INFO)
     try:
-        _check_settings(out, config)
-        if config.coarse_shapes:
-            items = autoencoded_items(config.source, config.num_shapes, config.seed, config.coarse_shapes,
-                                      config.coarse_resolution)
-        else:
-            items = resolve_source(config.source, config.num_shapes, config.seed)
-        mine = [(i, item) for i, item in enumerate(items) if i % shard[1] == shard[0]]
-        suffix = _shard_suffix(shard)
-        manifest_path = out / f"manifest{suffix}.jsonl"
-        done = {(r["shape_id"], r["view"]) for r in read_jsonl(manifest_path)}
-        total = len(mine) * config.views
-        summary: dict[str, Any] = {"shard": list(shard), "views_total": total, "views_before": len(done),
-                                   "views_rendered": 0, "skipped_shapes": {}}
-        versions = {"ngp_mi": __version__, **backend.versions(), "python": platform.python_version()}
-        writer = _BackgroundWriter(_ManifestWriter(manifest_path))
-        start = time.perf_counter()
-        bar = tqdm(total=total, initial=len(done), unit="view", disable=not progress, dynamic_ncols=True,
-                   desc=f"render-dataset{suffix or ''}")
-        try:
-            for index, item in mine:
-                todo = [v for v in range(config.views) if (item.id, v) not in done]
-                if not todo:
-                    continue
-                try:
-                    rendered = _render_shape(config, out, index, item, todo, writer, versions, bar)
-                except Exception as exc:  # a bad shape is skipped with its reason, the job goes on
-                    reason = f"{type(exc).__name__}: {exc}"
-                    log.warning("skipping %s (%s): %s", item.id, item.origin, reason)
-                    summary["skipped_shapes"][item.id] = reason
-                    bar.update(len(todo))
-                    continue
-                summary["views_rendered"] += rendered
-        finally:
-            try:
-                writer.close()
-            finally:
-                bar.close()
-        elapsed = time.perf_counter() - start
-        summary["seconds"] = round(elapsed, 3)
-        summary["views_per_second"] = round(summary["views_rendered"] / elapsed, 3) if elapsed > 0 else None
-        summary_path = out / f"summary{suffix}.json"
-        summary_path.write_text(json.dumps(summary, indent=1) + "\n")
-        log.info("done: %d views rendered, %d already present, %d shapes skipped (%s)", summary["views_rendered"],
-                 summary["views_before"], len(summary["skipped_shapes"]), summary_path)
-        if strict and summary["skipped_shapes"]:
-            raise RuntimeError(f"--strict: {len(summary['skipped_shapes'])} shape(s) skipped, see {summary_path}")
-        return summary
+        yield
     finally:
         log.removeHandler(handler)
         handler.close()
 
 
-def _render_shape(config: DatasetConfig, out: Path, index: int, item: SourceItem, views: Iterable[int],
-                  writer: _BackgroundWriter, versions: dict[str, str], bar: Any) -> int:
+def render_dataset(config: DatasetConfig, out: str | Path, shard: tuple[int, int] = (0, 1),
+                   strict: bool = False, progress: bool = True, workers: int = 1) -> dict[str, Any]:
+    """Render (or finish rendering) this shard of the dataset; returns the summary.
+
+    ``workers`` > 1 starts that many processes, worker j taking shard ``(K + N·j) / (N·workers)``
+    of the whole (so the shard is split like ``--shard`` splits the dataset); their progress,
+    skipped shapes and failures come back to this process, which writes the shard's summary.
+    """
+    from tqdm import tqdm
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    if workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {workers}")
+    with _logging_to(out):
+        _check_settings(out, config)
+        suffix = _shard_suffix(shard)
+        bar = tqdm(total=0, unit="view", disable=not progress, dynamic_ncols=True, desc=f"render-dataset{suffix}")
+        start = time.perf_counter()
+        try:
+            if workers == 1:
+                summary = _render_part(config, out, shard, _BarProgress(bar))
+            else:
+                summary = _run_workers(config, out, shard, workers, bar)
+        finally:
+            bar.close()
+        elapsed = time.perf_counter() - start
+        summary.update(shard=list(shard), workers=workers, seconds=round(elapsed, 3),
+                       views_per_second=round(summary["views_rendered"] / elapsed, 3) if elapsed > 0 else None)
+        summary_path = out / f"summary{suffix}.json"
+        summary_path.write_text(json.dumps(summary, indent=1) + "\n")
+        log.info("done: %d views rendered, %d already present, %d shapes skipped (%s)", summary["views_rendered"],
+                 summary["views_before"], len(summary["skipped_shapes"]), summary_path)
+        if summary.get("failed_workers"):
+            raise RuntimeError(f"{len(summary['failed_workers'])} worker(s) failed ({summary['failed_workers']}); "
+                               f"what they finished is kept, re-run to render the rest (see {summary_path})")
+        if strict and summary["skipped_shapes"]:
+            raise RuntimeError(f"--strict: {len(summary['skipped_shapes'])} shape(s) skipped, see {summary_path}")
+        return summary
+
+
+class _BarProgress:
+    """Progress of :func:`_render_part` in this process: ``start`` (totals) and ``update`` (views done)."""
+
+    def __init__(self, bar: Any):
+        self.bar = bar
+
+    def start(self, total: int, before: int) -> None:
+        self.bar.total = total
+        self.bar.update(before)
+
+    def update(self, views: int) -> None:
+        self.bar.update(views)
+
+
+class _Progress:
+    """The same reports from a worker, sent to :func:`_run_workers`."""
+
+    def __init__(self, messages: Any, worker: int):
+        self.messages, self.worker = messages, worker
+
+    def start(self, total: int, before: int) -> None:
+        self.messages.put(("start", self.worker, (total, before)))
+
+    def update(self, views: int) -> None:
+        self.messages.put(("views", self.worker, views))
+
+
+def _worker_main(config: DatasetConfig, out: Path, shard: tuple[int, int], worker: int, messages: Any) -> None:
+    backend.load(threads=1)  # this process is one of the job's cores
+    try:
+        with _logging_to(out):
+            summary = _render_part(config, out, shard, _Progress(messages, worker))
+        messages.put(("done", worker, summary))
+    except BaseException as exc:
+        messages.put(("failed", worker, f"{type(exc).__name__}: {exc}"))
+        raise
+
+
+def _run_workers(config: DatasetConfig, out: Path, shard: tuple[int, int], workers: int, bar: Any) -> dict[str, Any]:
+    k, n = shard
+    context = multiprocessing.get_context("spawn")  # a fresh interpreter: no forked JIT or thread state
+    messages = context.Queue()
+    processes = [context.Process(target=_worker_main, args=(config, out, (k + n * j, n * workers), j, messages),
+                                 name=f"render-dataset-worker-{j}", daemon=True) for j in range(workers)]
+    for process in processes:
+        process.start()
+    totals: dict[int, tuple[int, int]] = {}
+    results: dict[int, dict[str, Any]] = {}
+    failures: dict[int, str] = {}
+    silent_exit: set[int] = set()
+    try:
+        while len(results) + len(failures) < workers:
+            try:
+                kind, worker, payload = messages.get(timeout=0.5)
+            except queue.Empty:
+                for j, process in enumerate(processes):
+                    if j in results or j in failures or process.exitcode is None:
+                        continue
+                    if j in silent_exit:  # exited a whole timeout ago without a final message: killed
+                        failures[j] = f"exited with code {process.exitcode}"
+                        log.error("worker %d %s", j, failures[j])
+                    silent_exit.add(j)
+                continue
+            if kind == "start":
+                totals[worker] = payload
+                bar.total = sum(t for t, _ in totals.values())
+                bar.update(payload[1])
+            elif kind == "views":
+                bar.update(payload)
+            elif kind == "done":
+                results[worker] = payload
+            else:
+                failures[worker] = payload
+                log.error("worker %d failed: %s", worker, payload)
+    finally:
+        for process in processes:
+            process.join(timeout=None if len(results) + len(failures) == workers else 0)
+            if process.is_alive():
+                process.terminate()
+    summary: dict[str, Any] = {"views_total": sum(t for t, _ in totals.values()),
+                               "views_before": sum(b for _, b in totals.values()),
+                               "views_rendered": sum(r["views_rendered"] for r in results.values()),
+                               "skipped_shapes": {}}
+    for result in results.values():
+        summary["skipped_shapes"].update(result["skipped_shapes"])
+    if failures:
+        summary["failed_workers"] = {str(j): reason for j, reason in sorted(failures.items())}
+    return summary
+
+
+def _render_part(config: DatasetConfig, out: Path, shard: tuple[int, int], progress: Any) -> dict[str, Any]:
+    """Render the missing views of one shard in this process, reporting to ``progress``."""
+    if config.coarse_shapes:
+        items = autoencoded_items(config.source, config.num_shapes, config.seed, config.coarse_shapes,
+                                  config.coarse_resolution)
+    else:
+        items = resolve_source(config.source, config.num_shapes, config.seed)
+    mine = [(i, item) for i, item in enumerate(items) if i % shard[1] == shard[0]]
+    done = set(manifest_records(out))  # every manifest: another shard or worker count may have rendered some
+    total = len(mine) * config.views
+    before = sum((item.id, v) in done for _, item in mine for v in range(config.views))
+    progress.start(total, before)
+    summary: dict[str, Any] = {"views_total": total, "views_before": before, "views_rendered": 0, "skipped_shapes": {}}
+    versions = {"ngp_mi": __version__, **backend.versions(), "python": platform.python_version()}
+    writer = BackgroundWriter(ManifestWriter(out / f"manifest{_shard_suffix(shard)}.jsonl"))
+    try:
+        for index, item in mine:
+            todo = [v for v in range(config.views) if (item.id, v) not in done]
+            if not todo:
+                continue
+            try:
+                summary["views_rendered"] += _render_shape(config, out, index, item, todo, writer, versions, progress)
+            except Exception as exc:  # a bad shape is skipped with its reason, the job goes on
+                reason = f"{type(exc).__name__}: {exc}"
+                log.warning("skipping %s (%s): %s", item.id, item.origin, reason)
+                summary["skipped_shapes"][item.id] = reason
+                progress.update(len(todo))
+    finally:
+        writer.close()
+    return summary
+
+
+def _render_shape(config: DatasetConfig, out: Path, index: int, item: SourceItem, views: Sequence[int],
+                  writer: BackgroundWriter, versions: dict[str, str], progress: Any) -> int:
     content = item.load()
     cameras = view_cameras(config, index)
-    gbuffer = GBufferRenderer(content.shapes, content.bounds, cameras[0], config.channels)
-    real_scene = None
     if config.real_spp and config.lights == "scene" and not content.emitters:
         raise ValueError("--lights scene needs emitters in the scene file")
-    count = 0
-    for view in views:
+    # the mask is always rendered: it gives the stored rectangle (the data window) of every file
+    channels = config.channels if "mask" in config.channels else (*config.channels, "mask")
+    gbuffer = GBufferRenderer(content.shapes, content.bounds, cameras[0], channels)
+    all_maps = gbuffer.render_views([cameras[v] for v in views])
+    windows = [None] * len(views) if config.full_window else nonzero_windows(all_maps["mask"])
+    real_scene = None
+    for j, view in enumerate(views):
         camera = cameras[view]
         lights = view_lights(config, index, view) if config.lights != "scene" else []
         stem = f"{item.id}/{view:03d}"
-        maps = gbuffer.render(camera)
+        maps = {name: all_maps[name][j] for name in config.channels}
+        window = windows[j]
         files = {"maps": f"maps/{stem}.exr"}
         image = None
         if config.real_spp:
@@ -319,8 +373,8 @@ def _render_shape(config: DatasetConfig, out: Path, index: int, item: SourceItem
             files["real"] = f"real/{stem}.exr"
             files["real_png"] = f"real/{stem}.png"
 
-        def write(maps=maps, image=image, files=files, view=view) -> None:
-            write_exr(out / files["maps"], maps, config.compression,
+        def write(maps=maps, window=window, image=image, files=files, view=view) -> None:
+            write_exr(out / files["maps"], maps, config.compression, window=window,
                       metadata={"ngp_mi.shape_id": item.id, "ngp_mi.view": str(view)},
                       half=[c for c in maps if c != "depth"] if config.half else ())
             if image is not None:
@@ -334,6 +388,5 @@ def _render_shape(config: DatasetConfig, out: Path, index: int, item: SourceItem
             "lights": [l.to_dict() for l in lights] if config.lights != "scene" else "scene",
             "seed": config.seed, "real_spp": config.real_spp, "files": files, "bounds": content.bounds.tolist(),
             "shape": content.meta, "versions": versions,
-        }, lambda: bar.update(1))
-        count += 1
-    return count
+        }, lambda: progress.update(1))
+    return len(views)

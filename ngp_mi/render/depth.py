@@ -28,6 +28,7 @@ import torch
 
 from ngp_mi import backend
 from ngp_mi.camera import Camera
+from ngp_mi.render.rays import camera_table, pixel_centre_rays
 from ngp_mi.render.scene import MESH_POSITIONS, mitsuba_mesh
 
 _MESH_KEY = "mesh"
@@ -41,11 +42,6 @@ class DepthMaps:
     mask: torch.Tensor    # (N, 1, H, W) 1 on the object (coverage in [0, 1] with silhouettes)
     normal: torch.Tensor  # (N, 3, H, W) camera-space geometric normals facing the camera, 0 on background
     noc: torch.Tensor     # (N, 3, H, W) normalised object coordinates in [0, 1]³, 0 on background
-
-
-def _camera_table(cameras: Sequence[Camera]) -> np.ndarray:
-    """(N, 15) rows: R (9, row-major), camera centre (3), focal_px, cx, cy."""
-    return np.stack([np.concatenate([c.R.ravel(), c.position, [c.focal_px, c.cx, c.cy]]) for c in cameras])
 
 
 class MeshProjector:
@@ -79,27 +75,15 @@ class MeshProjector:
     def trace(self, table: np.ndarray, width: int, height: int) -> tuple[Any, ...]:
         """Cast one ray per pixel centre of every view; Dr.Jit arrays (z, mask, normal, position).
 
-        Lane ``k = n·H·W + y·W + x``. z = t / |K⁻¹ [u, v, 1]| (ray length → optical-axis depth).
+        Lanes as in :func:`~ngp_mi.render.rays.pixel_centre_rays`; z = t / |K⁻¹ [u, v, 1]|.
         """
         mi, dr = backend.mitsuba(), backend.drjit()
-        n, hw = len(table), width * height
-        cam = mi.Float(table.astype(np.float32).ravel())
-        idx = dr.arange(mi.UInt32, n * hw)
-        view = idx // hw
-        pixel = idx - view * hw
-        row = [dr.gather(mi.Float, cam, view * 15 + k) for k in range(15)]
-        R = mi.Matrix3f(*row[:9])
-        origin = mi.Point3f(*row[9:12])
-        focal, cx, cy = row[12:15]
-        local = mi.Vector3f((mi.Float(pixel % width) + 0.5 - cx) / focal,
-                            (mi.Float(pixel // width) + 0.5 - cy) / focal, 1.0)
-        inv_len = dr.rsqrt(dr.squared_norm(local))
-        direction = R.T @ (local * inv_len)  # camera → world
-        si = self.scene.ray_intersect(mi.Ray3f(origin, direction), ray_flags=mi.RayFlags.All, coherent=True)
+        rays = pixel_centre_rays(table, width, height)
+        si = self.scene.ray_intersect(rays.ray, ray_flags=mi.RayFlags.All, coherent=True)
         hit = si.is_valid()
-        z = dr.select(hit, si.t * inv_len, 0.0)
-        normal = R @ si.n  # world → camera
-        normal = dr.select(dr.dot(normal, local) > 0, -normal, normal)  # face the camera
+        z = dr.select(hit, si.t * rays.inv_len, 0.0)
+        normal = rays.R @ si.n  # world → camera
+        normal = dr.select(dr.dot(normal, rays.local) > 0, -normal, normal)  # face the camera
         normal = dr.select(hit, normal, mi.Vector3f(0.0))
         position = dr.select(hit, si.p, mi.Point3f(0.0))
         return z, mi.Float(hit), normal, position
@@ -206,7 +190,7 @@ def project_depth(vertices: torch.Tensor, faces: np.ndarray | torch.Tensor, came
     if not torch.isfinite(vertices).all():
         raise ValueError("project_depth: vertices contain non-finite values")
     projector = projector_for(faces, vertices.shape[0])
-    z, hit, normal, position = _ProjectFast.apply(projector, _camera_table(cameras), width, height, vertices)
+    z, hit, normal, position = _ProjectFast.apply(projector, camera_table(cameras), width, height, vertices)
     noc = normalized_object_coordinates(position, hit, vertices)
     if silhouette_grad:
         from ngp_mi.render.depth_projective import render_depth_coverage

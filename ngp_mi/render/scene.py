@@ -45,12 +45,13 @@ def mesh_parts_to_mitsuba(mesh: TriangleMesh, bsdfs: Mapping[int, Mapping[str, A
     """One ``mi.Mesh`` per part id (so each part can have its own BSDF), keyed ``<name>_part<k>``."""
     bsdfs = bsdfs or {}
     out = {}
+    new_index = np.empty(len(mesh.vertices), np.int64)
     for part in np.unique(mesh.part_ids):
         faces = mesh.faces[mesh.part_ids == part]
-        used, remapped = np.unique(faces, return_inverse=True)
+        used = np.flatnonzero(np.bincount(faces.ravel(), minlength=len(mesh.vertices)))  # sorted, like np.unique
+        new_index[used] = np.arange(len(used))
         key = f"{mesh.name}_part{int(part)}"
-        out[key] = mitsuba_mesh(mesh.vertices[used], remapped.reshape(-1, 3), key,
-                                bsdfs.get(int(part), default_bsdf))
+        out[key] = mitsuba_mesh(mesh.vertices[used], new_index[faces], key, bsdfs.get(int(part), default_bsdf))
     return out
 
 
