@@ -111,7 +111,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--shapes", type=int, default=300)
     parser.add_argument("--views", type=int, default=10)
-    parser.add_argument("--blender-shapes", type=int, default=10)
+    parser.add_argument("--blender-shapes", type=int, default=30)
     parser.add_argument("--codecs", default="rle,zip,none")
     parser.add_argument("--resolutions", default="128,256")
     parser.add_argument("--rss-views", type=int, default=2000)

@@ -1,4 +1,4 @@
-"""Independent reference computations shared by the tests (no Mitsuba inside)."""
+"""Independent reference computations shared by the tests (no Mitsuba inside), and a JIT probe."""
 
 import numpy as np
 import trimesh
@@ -30,3 +30,18 @@ def analytic_sphere(camera: Camera, radius: float):
     t = b - np.sqrt(np.where(hit, disc, 0.0))
     point = t[..., None] * unit
     return np.where(hit, point[..., 2], 0.0), np.where(hit[..., None], (point - c) / radius, 0.0), hit
+
+
+def compiled_kernels(fn) -> tuple[list[dict], list[dict]]:
+    """Run ``fn()`` and return (every JIT kernel it launched, those not found in Dr.Jit's kernel cache)."""
+    from ngp_mi import backend
+
+    dr = backend.drjit()
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history_clear()
+    try:
+        fn()
+        launched = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    return launched, [k for k in launched if not k["cache_hit"]]

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from helpers import analytic_sphere, trimesh_depth
+from helpers import analytic_sphere, compiled_kernels, trimesh_depth
 from ngp_mi.camera import Camera, ViewDistribution
 from ngp_mi.geometry.primitives import box, simple_chair
 from ngp_mi.render.depth import project_depth
@@ -77,6 +77,20 @@ def test_batched_views_equal_the_aov_integrator_view_by_view():
     np.testing.assert_array_equal(one["noc"], batch["noc"][:2])
     with pytest.raises(ValueError, match="64x64"):
         renderer.render_views([cameras[0].with_resolution(32)])
+
+
+def test_new_shapes_reuse_the_compiled_kernel():
+    """Geometry, bounds and materials are kernel inputs: a dataset of new shapes compiles nothing new."""
+    camera = Camera.orbit(10.0, 20.0, 16)
+
+    def render(i):
+        mesh = box((0.01 * i, -0.02 * i, 0.0), (0.3 + 0.02 * i, 0.25, 0.3 - 0.01 * i))
+        shapes = mesh_parts_to_mitsuba(mesh, default_bsdf=diffuse_bsdf((0.2 + 0.1 * i, 0.5, 0.3)))
+        GBufferRenderer(shapes, mesh.bounds, camera).render_views([camera, camera])
+
+    render(0)
+    launched, compiled = compiled_kernels(lambda: [render(i) for i in (1, 2, 3)])
+    assert len(launched) >= 3 and not compiled, f"{len(compiled)} of {len(launched)} kernels compiled anew"
 
 
 def test_gbuffer_agrees_with_the_depth_projection():

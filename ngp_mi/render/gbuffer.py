@@ -135,8 +135,9 @@ class GBufferRenderer:
             raise ValueError(f"render_views: every camera must be {width}x{height}")
         table = camera_table(cameras)
         n, hw = len(cameras), width * height
-        lo = mi.Vector3f(*self.bounds[0].tolist())
-        inv_extent = mi.Vector3f(*(1.0 / np.maximum(self.bounds[1] - self.bounds[0], 1e-12)).tolist())
+        # Opaque, not literals: a literal bounding box would make every shape a new kernel to compile.
+        lo = dr.opaque(mi.Vector3f, self.bounds[0].tolist())
+        inv_extent = dr.opaque(mi.Vector3f, (1.0 / np.maximum(self.bounds[1] - self.bounds[0], 1e-12)).tolist())
         step = max(1, _LANES_PER_LAUNCH // hw)
         chunks: dict[str, list[np.ndarray]] = {name: [] for name in self.channels}
         for first in range(0, n, step):
