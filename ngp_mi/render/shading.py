@@ -155,29 +155,33 @@ class CameraLights:
     @classmethod
     def from_lights(cls, lights: Sequence[Light], cameras: Sequence[Camera] | None,
                     dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> "CameraLights":
-        """World-space lights seen from each camera (or taken as camera space when ``cameras`` is None)."""
+        """World-space lights seen from each camera (or taken as camera space when ``cameras`` is None).
+
+        Directions and positions get one row per camera; irradiance and intensity do not depend on
+        the camera and stay one shared row (the kernel reads them once instead of per pixel).
+        """
         rotations = np.stack([c.R for c in cameras]) if cameras else np.eye(3)[None]
         translations = np.stack([c.t for c in cameras]) if cameras else np.zeros((1, 3))
         dirs = [l for l in lights if isinstance(l, DirectionalLight)]
         points = [l for l in lights if isinstance(l, PointLight)]
         d = np.array([l.direction for l in dirs]).reshape(-1, 3)
         p = np.array([l.position for l in points]).reshape(-1, 3)
-        b = len(rotations)
 
         def tensor(x: np.ndarray) -> torch.Tensor:
             return torch.tensor(np.array(x), dtype=dtype, device=device)
 
         return cls(
             directions=tensor(np.einsum("bij,lj->bli", rotations, d)),
-            irradiance=tensor(np.broadcast_to(np.array([l.irradiance for l in dirs]).reshape(1, -1, 3), (b, len(dirs), 3))),
+            irradiance=tensor(np.array([l.irradiance for l in dirs]).reshape(1, -1, 3)),
             positions=tensor(np.einsum("bij,lj->bli", rotations, p) + translations[:, None]),
-            intensity=tensor(np.broadcast_to(np.array([l.intensity for l in points]).reshape(1, -1, 3), (b, len(points), 3))),
+            intensity=tensor(np.array([l.intensity for l in points]).reshape(1, -1, 3)),
         )
 
 
 def _intrinsics(camera: Camera | Sequence[Camera] | None, batch: int, height: int, width: int,
                 dtype: torch.dtype, device: Any) -> torch.Tensor:
-    """(B, 3) rows [f, cx, cy] in pixels; the paper's 50 mm / 36 mm pinhole when no camera is given."""
+    """(B, 3) rows [f, cx, cy] in pixels, or one shared row when every camera has the same (the usual
+    case, read once by the kernel); the paper's 50 mm / 36 mm pinhole when no camera is given."""
     cameras = [camera] if isinstance(camera, Camera) else list(camera or [])
     for c in cameras:
         if (c.width, c.height) != (width, height):
@@ -185,6 +189,8 @@ def _intrinsics(camera: Camera | Sequence[Camera] | None, batch: int, height: in
     rows = [[c.focal_px, c.cx, c.cy] for c in cameras] or [[PAPER_FOCAL_MM / PAPER_FILM_MM * width, width / 2, height / 2]]
     if len(rows) not in (1, batch):
         raise ValueError(f"got {len(rows)} cameras for a batch of {batch}")
+    if all(row == rows[0] for row in rows):
+        rows = rows[:1]
     return torch.tensor(rows, dtype=dtype, device=device)
 
 
