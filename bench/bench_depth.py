@@ -54,8 +54,8 @@ def main() -> None:
     print("| res | mode | spp | boundary spp | forward ms | fwd+bwd ms |\n|---|---|---|---|---|---|")
     for res in (128, 256):
         cam = Camera.orbit(10.0, 30.0, res)
-        configs = [("fast", 1, 0), ("silhouette", 16, 16), ("silhouette", 16, 4), ("silhouette", 16, 1),
-                   ("silhouette", 4, 1)]  # (16, 4) is the default
+        configs = [("fast", 1, 0), ("silhouette", 16, 16), ("silhouette", 16, 4), ("silhouette", 8, 2),
+                   ("silhouette", 16, 1), ("silhouette", 4, 1)]  # (8, 2) is the default
         for mode, spp, bspp in configs:
             def run(i):
                 v = v0.clone().float().requires_grad_()

@@ -145,7 +145,7 @@ class _RenderDepthCoverage(torch.autograd.Function):
         return None, None, None, None, None, grad
 
 
-def render_depth_coverage(projector: Any, vertices: torch.Tensor, cameras: Sequence[Camera], spp: int = 16,
+def render_depth_coverage(projector: Any, vertices: torch.Tensor, cameras: Sequence[Camera], spp: int = 8,
                           boundary_spp: int | None = None, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """Pixel-averaged depth and coverage, (N, 1, H, W) each, differentiable including silhouettes.
 
