@@ -138,6 +138,15 @@ def test_worker_processes_write_what_one_process_writes(tmp_path):
     assert again["views_before"] == 6 and again["views_rendered"] == 0
 
 
+def test_a_failing_worker_is_reported_by_name(tmp_path):
+    config = DatasetConfig(source=str(tmp_path / "no-such-meshes"), num_shapes=2, views=1, resolution=16)
+    with pytest.raises(RuntimeError, match=r"2 worker\(s\) failed .*no-such-meshes.*not a family .*file or folder"):
+        render_dataset(config, tmp_path / "out", progress=False, workers=2)
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert sorted(summary["failed_workers"]) == ["0", "1"] and summary["views_rendered"] == 0
+    assert "worker 0 failed" in (tmp_path / "out" / "render-dataset.log").read_text()
+
+
 def test_shards_started_together_share_one_folder(tmp_path):
     cli = [sys.executable, "-m", "ngp_mi.cli", "render-dataset", "--source", "car", "--num-shapes", "4",
            "--views", "1", "--res", "16", "--workers", "1", "--quiet", "--out", str(tmp_path)]
