@@ -19,4 +19,5 @@ def test_dataset_memory_stays_flat_over_2000_views(tmp_path):
         summary = render_dataset(config, tmp_path / str(chunk), progress=False)
         assert summary["views_rendered"] == 250
         samples.append(_rss_mib())
-    assert samples[-1] - samples[0] < 20, f"RSS after each 250 views: {samples}"
+    # 5 MiB: a kernel compiled per shape (a literal in the trace) grew it by 14 MiB over these views
+    assert samples[-1] - samples[0] < 5, f"RSS after each 250 views: {samples}"
