@@ -79,6 +79,21 @@ def test_gradcheck_float64(backend, mode, view):
     assert torch.autograd.gradcheck(f, tuple(x[k] for k in names), eps=1e-6, atol=1e-6, rtol=1e-5)
 
 
+@pytest.mark.parametrize("reduce", ["sum", "mean"])
+def test_gradient_of_a_sum_or_mean_equals_the_dense_one(reduce):
+    """Their upstream gradient is one broadcast value, which the Dr.Jit backward reads as such."""
+    x, cams = random_inputs(n=2, h=4, w=5, dtype=torch.float32)
+    out = run(x, cams, "drjit")
+    broadcast = torch.autograd.grad(getattr(out, reduce)(), list(x.values()), retain_graph=True, allow_unused=True)
+    weight = torch.full_like(out, 1.0 if reduce == "sum" else 1.0 / out.numel())
+    dense = torch.autograd.grad((out * weight).sum(), list(x.values()), allow_unused=True)
+    for name, a, b in zip(x, broadcast, dense):
+        assert (a is None) == (b is None), name
+        if a is not None:
+            torch.testing.assert_close(a, b, msg=name)
+            assert a.abs().sum() > 0, name
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_repeated_backward_over_one_graph(backend):
     """A second backward (retain_graph) must use the new upstream gradient, not the first one's."""
