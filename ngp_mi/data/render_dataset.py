@@ -55,7 +55,8 @@ from ngp_mi.viz import save_png, to_uint8
 log = logging.getLogger("ngp_mi.render_dataset")
 LIGHT_MODES = ("rig", "random", "scene")
 STORAGE_SETTINGS = ("compression", "full_window")  # how maps are stored, not what they hold: may change on resume
-__all__ = ["DatasetConfig", "load_manifest", "parse_shard", "render_dataset", "view_cameras", "view_lights"]
+__all__ = ["DatasetConfig", "default_workers", "derived_seed", "load_manifest", "parse_shard", "render_dataset",
+           "view_cameras", "view_lights"]
 
 
 @dataclasses.dataclass(frozen=True)
