@@ -214,8 +214,8 @@ def _torch_shade(normal, albedo, mask, depth, intr, lights: CameraLights, alpha,
         ray = ((u - cx) / f, (v - cy) / f, torch.ones_like(u).expand(intr.shape[0], 1, h, w))
     view = safe_normalize(ops, tuple(-c for c in ray)) if opts["view"] == "per_pixel" else (0.0, 0.0, -1.0)
 
-    light_list = [(light_comps(lights.directions, i), light_comps(lights.irradiance, i))
-                  for i in range(lights.directions.shape[1])]
+    directions = torch.stack(safe_normalize(ops, lights.directions.unbind(-1)), dim=-1)  # once per (image, light)
+    light_list = [(light_comps(directions, i), light_comps(lights.irradiance, i)) for i in range(directions.shape[1])]
     if lights.positions.shape[1] > 0:
         position = tuple(depth * r for r in ray)
         for i in range(lights.positions.shape[1]):
@@ -234,106 +234,225 @@ def _torch_shade(normal, albedo, mask, depth, intr, lights: CameraLights, alpha,
 
 _INPUTS = ("normal", "albedo", "mask", "depth", "intr", "directions", "irradiance", "positions", "intensity",
            "alpha", "spec_albedo")
+_PER_IMAGE = ("intr", "directions", "irradiance", "positions", "intensity")  # (1 or N, ...) rows
+
+
+def pixels_per_lane(width: int) -> int:
+    """How many horizontally adjacent pixels one kernel lane shades: 4 when the row width allows.
+
+    A lane then reads each map channel with one packet load of 4 values instead of 4 gathers, and
+    reads the per-image light values once for its 4 pixels; its reverse writes the map gradients
+    with packet stores and scatter-adds the light gradients 4x less often. Measured at 8 x 256²
+    (bench/RESULTS.md): forward kernel 2.4 -> 1.0 ms diffuse; 8 pixels per lane made the kernel no
+    faster and the per-call tracing slower (every arithmetic operation becomes one JIT variable per pixel).
+    """
+    return 4 if width % 4 == 0 else 2 if width % 2 == 0 else 1
+
+
+@dataclasses.dataclass(frozen=True)
+class _Layout:
+    """Everything the traced Dr.Jit code depends on besides the arrays' contents.
+
+    It is the key of the frozen functions below: a call with another layout traces anew, one with
+    the same layout replays the recorded kernel.
+    """
+
+    mode: str
+    view: str
+    k_d: float
+    k_s: float
+    alpha: float | None        # None: a map
+    spec_albedo: float | None  # None: a map
+    n: int
+    h: int
+    w: int
+    rows: tuple[tuple[str, int], ...]  # per-image inputs: (name, values per row)
+    shared: tuple[str, ...]            # per-image inputs given as one row, passed as single values
+    wants: tuple[str, ...] = ()        # inputs that need a gradient (backward only)
+    grad_scalar: bool = False          # the upstream gradient is one broadcast value (backward only)
+
+    @property
+    def k(self) -> int:
+        return pixels_per_lane(self.w)
+
+    def count(self, name: str) -> int:
+        """Lights in a per-image input (its values per row / 3)."""
+        return next((width // 3 for row_name, width in self.rows if row_name == name), 0)
+
+
+def _shade_graph(layout: _Layout, arrays: dict) -> tuple[Vec, dict, Any, Any]:
+    """Trace the shading of every pixel; each lane shades :func:`pixels_per_lane` adjacent pixels of
+    one image (a Dr.Jit ``ArrayXf`` with one component per pixel).
+
+    Returns the RGB expression, the AD leaves of the maps in ``layout.wants`` (the map values as
+    read: their gradients are stored with packet stores, every map element belonging to one lane;
+    Dr.Jit's own reverse of a packet gather would be a scatter-reduction), the lane index and the
+    lane's first element in a 3-channel map.
+    """
+    dr = backend.drjit()
+    ops = _drjit_ops()
+    Float = type(arrays["normal"])
+    mod = dr.cuda.ad if dr.backend_v(Float) == dr.JitBackend.CUDA else dr.llvm.ad
+    Pixels = mod.ArrayXf64 if Float is mod.Float64 else mod.ArrayXf
+    UInt = mod.UInt
+    n, w, k = layout.n, layout.w, layout.k
+    per_image = layout.h * w // k  # lanes per image
+    lanes = n * per_image
+
+    idx = dr.arange(UInt, lanes)
+    batch = idx // per_image
+    lane = idx - batch * per_image  # lane within its image; it shades pixels k*lane ... k*lane + k-1
+    base3 = batch * (3 * per_image) + lane
+    leaves: dict[str, tuple] = {}
+
+    def map_channels(name: str, channels: int) -> tuple:
+        index = idx if channels == 1 else base3
+        values = tuple(dr.gather(Pixels, arrays[name], index + c * per_image, shape=(k, lanes)) for c in range(channels))
+        if name in layout.wants:
+            dr.enable_grad(*values)
+            leaves[name] = values
+        return values
+
+    def per_batch(name: str, width: int, offset: int) -> Any:
+        """Entry ``[b, offset]`` of a (N, width) array, or of a shared row (passed as single values:
+        one scalar load for the whole kernel; a gather inside a frozen function is one per lane)."""
+        if name in layout.shared:
+            return arrays[name][offset]
+        return dr.gather(Float, arrays[name], batch * width + offset)
+
+    def light3(name: str, i: int) -> Vec:
+        return tuple(per_batch(name, 3 * layout.count(name), 3 * i + c) for c in range(3))  # type: ignore[return-value]
+
+    n_dir, n_point = layout.count("directions"), layout.count("positions")
+    if layout.view == "per_pixel" or n_point:
+        f, cx, cy = (per_batch("intr", 3, c) for c in range(3))
+        first = lane * k  # the lane's first pixel; its k pixels share a row (k divides the width)
+        u = Float(first % w) + Pixels([m + 0.5 for m in range(k)])
+        v = Float(first // w) + 0.5
+        ray = ((u - cx) / f, (v - cy) / f, Float(1.0))
+    view = safe_normalize(ops, (-ray[0], -ray[1], -ray[2])) if layout.view == "per_pixel" else (0.0, 0.0, -1.0)
+    # directions normalised per lane (once per pixels_per_lane pixels; a shared one once per kernel)
+    lights = [(safe_normalize(ops, light3("directions", i)), light3("irradiance", i)) for i in range(n_dir)]
+    if n_point:
+        depth = map_channels("depth", 1)[0]
+        position = (depth * ray[0], depth * ray[1], depth * ray[2])
+        lights += [point_light_incidence(ops, position, light3("positions", i), light3("intensity", i))
+                   for i in range(n_point)]
+    alpha = map_channels("alpha", 1)[0] if layout.alpha is None else layout.alpha
+    spec = None
+    if layout.mode == "blinn_phong":
+        spec = map_channels("spec_albedo", 3) if layout.spec_albedo is None else (layout.spec_albedo,) * 3
+    rgb = blinn_phong_radiance(ops, map_channels("normal", 3), view, lights, map_channels("albedo", 3),
+                               layout.k_d, spec, layout.k_s, alpha)
+    if "mask" in arrays:
+        m = map_channels("mask", 1)[0]
+        rgb = (rgb[0] * m, rgb[1] * m, rgb[2] * m)
+    return rgb, leaves, idx, base3
+
+
+def _shade_forward(layout: _Layout, arrays: dict) -> Any:
+    """The shaded maps, a flat (N, 3, H, W) array, from one kernel."""
+    dr = backend.drjit()
+    rgb, _, _, base3 = _shade_graph(layout, arrays)
+    Float = type(arrays["normal"])
+    per_image = layout.h * layout.w // layout.k
+    out = dr.empty(Float, layout.n * 3 * layout.h * layout.w)
+    for c in range(3):
+        # Permute (no two lanes write one element) lets the three packet stores share one kernel;
+        # without it each launched its own. One output array: torch.stack of three channels would copy.
+        dr.scatter(out, rgb[c], base3 + c * per_image, mode=dr.ReduceMode.Permute)
+    return out
+
+
+def _shade_backward(layout: _Layout, arrays: dict, grad_out: Any) -> dict:
+    """Gradients of ``Σ grad_out · shade`` for the inputs in ``layout.wants``, from one kernel.
+
+    ``grad_out`` is the flat upstream gradient, or one value when it is a broadcast scalar (the
+    gradient of a sum or a mean: materialising it took 4 ms at 8 x 256²).
+    """
+    dr = backend.drjit()
+    Float = type(arrays["normal"])
+    for name in layout.wants:
+        if name in _PER_IMAGE:
+            dr.enable_grad(arrays[name])
+    rgb, leaves, idx, base3 = _shade_graph(layout, arrays)
+    Pixels = type(rgb[0])
+    k, per_image = layout.k, layout.h * layout.w // layout.k
+    for c in range(3):
+        if layout.grad_scalar:
+            dr.set_grad(rgb[c], Pixels([grad_out] * k))
+        else:
+            dr.set_grad(rgb[c], dr.gather(Pixels, grad_out, base3 + c * per_image, shape=(k, dr.width(idx))))
+    dr.enqueue(dr.ADMode.Backward, *rgb)
+    dr.traverse(dr.ADMode.Backward)
+    grads = {}
+    for name, values in leaves.items():
+        grads[name] = dr.empty(Float, dr.width(arrays[name]))
+        index = idx if len(values) == 1 else base3
+        for c, value in enumerate(values):
+            dr.scatter(grads[name], dr.grad(value), index + c * per_image, mode=dr.ReduceMode.Permute)
+    grads.update({name: dr.grad(arrays[name]) for name in layout.wants if name in _PER_IMAGE})
+    return grads
+
+
+_FROZEN: dict[str, Callable] = {}
+
+
+def _frozen(fn: Callable) -> Callable:
+    """``dr.freeze(fn)``, made once: a replay skips the Python tracing and the kernel's code generation
+    (0.6 / 1.0 ms of a 2.5 / 3.3 ms forward, diffuse / Blinn-Phong at 8 x 256²). Keyed by the
+    :class:`_Layout`; the 16 most recent layouts are kept."""
+    if fn.__name__ not in _FROZEN:
+        _FROZEN[fn.__name__] = backend.drjit().freeze(fn, limit=16, warn_after=64)
+    return _FROZEN[fn.__name__]
 
 
 def _drjit_run(opts: dict, inputs: Sequence[torch.Tensor | None], grad_out: torch.Tensor | None = None,
                needs: Sequence[bool] = ()) -> Any:
-    """Evaluate the shading in one Dr.Jit kernel; with ``grad_out``, return the input gradients instead.
+    """Shade in Dr.Jit; with ``grad_out``, return the input gradients (in :data:`_INPUTS` order) instead.
 
-    Every call builds a fresh Dr.Jit graph from the saved inputs, so any number of backward passes
-    over one torch graph is correct (plain ``dr.wrap`` returns a stale gradient on the second one).
+    Every call builds the Dr.Jit graph anew from the saved inputs (or replays its recording), so any
+    number of backward passes over one torch graph is correct (plain ``dr.wrap`` returns a stale
+    gradient on the second one).
     """
     dr = backend.drjit()
-    ops = _drjit_ops()
-    x = dict(zip(_INPUTS, inputs))
+    x = {name: t for name, t in zip(_INPUTS, inputs) if t is not None}
     normal = x["normal"]
     mod = dr.cuda.ad if normal.is_cuda else dr.llvm.ad
     Float, UInt = (mod.Float64 if normal.dtype == torch.float64 else mod.Float), mod.UInt
     n, _, h, w = normal.shape
-    hw = h * w
-    wants = dict(zip(_INPUTS, needs)) if grad_out is not None else {}
-
-    arrays = {}
-    for name, t in x.items():
-        if t is not None:
-            arrays[name] = Float(t.detach().contiguous().reshape(-1))
-            if wants.get(name):
-                dr.enable_grad(arrays[name])
-
-    idx = dr.arange(UInt, n * hw)
-    batch = idx // hw
-    pixel = idx - batch * hw
-    base3 = batch * (3 * hw) + pixel
-
-    # Every map element is read by exactly one lane, so the reverse-mode scatter needs no atomics.
-    permute = dr.ReduceMode.Permute
-
-    def map1(name: str) -> Any:
-        return dr.gather(Float, arrays[name], idx, mode=permute)
-
-    def map3(name: str) -> Vec:
-        a = arrays[name]
-        return tuple(dr.gather(Float, a, base3 + c * hw, mode=permute) for c in range(3))  # type: ignore[return-value]
-
-    def per_batch(name: str, width: int, offset: int) -> Any:
-        """Entry ``[b, offset]`` of a (B, width) array with B = 1 (shared) or the batch size.
-
-        A shared, constant entry is read through a literal index (a scalar load). An entry that needs
-        a gradient always uses a per-lane index: Dr.Jit's reverse of a literal-index gather is a
-        contended reduction, 2.5x slower (``shade`` gives such arrays one row per batch item).
-        """
-        a, rows = arrays[name], x[name].shape[0]
-        index = batch * width + offset if rows > 1 or wants.get(name) else UInt(offset)
-        return dr.gather(Float, a, index)
-
-    def light3(name: str, i: int) -> Vec:
-        count = x[name].shape[1]
-        return tuple(per_batch(name, 3 * count, 3 * i + k) for k in range(3))  # type: ignore[return-value]
-
-    n_dir, n_point = x["directions"].shape[1], x["positions"].shape[1]
-    if opts["view"] == "per_pixel" or n_point:
-        f, cx, cy = (per_batch("intr", 3, k) for k in range(3))
-        u = Float(pixel % w) + 0.5
-        v = Float(pixel // w) + 0.5
-        ray = ((u - cx) / f, (v - cy) / f, Float(1.0))
-    view = safe_normalize(ops, (-ray[0], -ray[1], -ray[2])) if opts["view"] == "per_pixel" else (0.0, 0.0, -1.0)
-    lights = [(light3("directions", i), light3("irradiance", i)) for i in range(n_dir)]
-    if n_point:
-        depth = map1("depth")
-        position = (depth * ray[0], depth * ray[1], depth * ray[2])
-        lights += [point_light_incidence(ops, position, light3("positions", i), light3("intensity", i))
-                   for i in range(n_point)]
-    alpha = map1("alpha") if "alpha" in arrays else opts["alpha"]
-    spec = None
-    if opts["mode"] == "blinn_phong":
-        spec = map3("spec_albedo") if "spec_albedo" in arrays else (opts["spec_albedo"],) * 3
-    rgb = blinn_phong_radiance(ops, map3("normal"), view, lights, map3("albedo"), opts["k_d"], spec,
-                               opts["k_s"], alpha)
-    if "mask" in arrays:
-        m = map1("mask")
-        rgb = (rgb[0] * m, rgb[1] * m, rgb[2] * m)
+    wants = tuple(name for name, need in zip(_INPUTS, needs) if need and name in x) if grad_out is not None else ()
+    expanded = set()
+    for name in _PER_IMAGE:
+        if name in wants and x[name].shape[0] == 1 and n > 1:
+            # Dr.Jit's reverse of a gather that every lane reads at one address is a contended
+            # reduction, 2.5x slower than one row per image (summed back below).
+            x[name] = x[name].expand(n, *x[name].shape[1:])
+            expanded.add(name)
+    arrays = {name: Float(t.detach().contiguous().reshape(-1)) for name, t in x.items() if t.numel()}
+    shared = tuple(name for name in _PER_IMAGE if name in arrays and x[name].shape[0] == 1 and name not in wants)
+    for name in shared:
+        arrays[name] = tuple(dr.gather(Float, arrays[name], UInt(i)) for i in range(x[name].numel()))
+    layout = _Layout(opts["mode"], opts["view"], opts["k_d"], opts["k_s"], opts["alpha"], opts["spec_albedo"], n, h, w,
+                     tuple((name, x[name][0].numel()) for name in _PER_IMAGE), shared, wants)
 
     if grad_out is None:
-        # Three conflict-free scatters evaluated together: one kernel, no extra copy (torch.stack of
-        # the channels would allocate and copy the output again, 5x the kernel's cost).
-        out = dr.empty(Float, n * 3 * hw)
-        for c in range(3):
-            dr.scatter(out, rgb[c], base3 + c * hw, mode=permute)
-        dr.eval(out)
+        out = _frozen(_shade_forward)(layout, arrays)
         return out.torch().reshape(n, 3, h, w)
 
-    if all(stride == 0 for stride in grad_out.stride()):
-        # the gradient of a sum or a mean: one value, broadcast (materialising it took 4 ms at 8 x 256²)
-        g = Float(grad_out.detach().to(normal.dtype).as_strided((1,), (1,)))
-        for c in range(3):
-            dr.set_grad(rgb[c], g)
-    else:
-        g = Float(grad_out.detach().to(normal.dtype).contiguous().reshape(-1))
-        for c in range(3):
-            dr.set_grad(rgb[c], dr.gather(Float, g, base3 + c * hw))
-    dr.enqueue(dr.ADMode.Backward, *rgb)
-    dr.traverse(dr.ADMode.Backward)
-    return [dr.grad(arrays[name]).torch().reshape(x[name].shape) if wants.get(name) else None for name in _INPUTS]
+    g = grad_out.detach().to(normal.dtype)
+    scalar = all(s == 0 for s in g.stride())
+    g = Float(g.as_strided((1,), (1,)) if scalar else g.contiguous().reshape(-1))
+    grads = _frozen(_shade_backward)(dataclasses.replace(layout, grad_scalar=scalar), arrays, g)
+    result = []
+    for name in _INPUTS:
+        if name not in grads:
+            result.append(None)
+            continue
+        grad = grads[name].torch()
+        result.append(grad.reshape(n, *x[name].shape[1:]).sum(0, keepdim=True) if name in expanded
+                      else grad.reshape(x[name].shape))
+    return result
 
 
 class _DrJitShade(torch.autograd.Function):
@@ -407,13 +526,7 @@ def shade(normal: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor | None 
     opts = {"mode": mode, "view": view, "k_d": float(k_d), "k_s": float(k_s),
             "alpha": None if isinstance(alpha, torch.Tensor) else float(alpha),
             "spec_albedo": None if isinstance(spec_albedo, torch.Tensor) else float(spec_albedo)}
-    # Directions are normalised once per (batch, light) here rather than once per pixel in the op.
-    directions = cast(lights.directions)
-    directions = torch.stack(safe_normalize(TORCH_OPS, directions.unbind(-1)), dim=-1)
-    light_tensors = [directions, *(cast(t) for t in (lights.irradiance, lights.positions, lights.intensity))]
-    if backend == "drjit" and n > 1:  # see per_batch in _drjit_run: one row per item when grads flow
-        light_tensors = [t.expand(n, -1, -1).contiguous() if t.requires_grad and t.shape[0] == 1 else t
-                         for t in light_tensors]
+    light_tensors = [cast(t) for t in (lights.directions, lights.irradiance, lights.positions, lights.intensity)]
     if backend == "torch":
         return _torch_shade(cast(normal), cast(albedo), cast(mask), cast(depth), intr, CameraLights(*light_tensors),
                             cast(alpha), cast(spec_albedo), opts)
