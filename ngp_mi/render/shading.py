@@ -266,14 +266,11 @@ class _Layout:
     n: int
     h: int
     w: int
+    k: int                             # pixels per lane (pixels_per_lane(w))
     rows: tuple[tuple[str, int], ...]  # per-image inputs: (name, values per row)
     shared: tuple[str, ...]            # per-image inputs given as one row, passed as single values
     wants: tuple[str, ...] = ()        # inputs that need a gradient (backward only)
     grad_scalar: bool = False          # the upstream gradient is one broadcast value (backward only)
-
-    @property
-    def k(self) -> int:
-        return pixels_per_lane(self.w)
 
     def count(self, name: str) -> int:
         """Lights in a per-image input (its values per row / 3)."""
@@ -429,12 +426,12 @@ def _drjit_run(opts: dict, inputs: Sequence[torch.Tensor | None], grad_out: torc
             # reduction, 2.5x slower than one row per image (summed back below).
             x[name] = x[name].expand(n, *x[name].shape[1:])
             expanded.add(name)
-    arrays = {name: Float(t.detach().contiguous().reshape(-1)) for name, t in x.items() if t.numel()}
+    arrays = {name: Float(t.detach().reshape(-1)) for name, t in x.items() if t.numel()}  # no copy when contiguous
     shared = tuple(name for name in _PER_IMAGE if name in arrays and x[name].shape[0] == 1 and name not in wants)
     for name in shared:
         arrays[name] = tuple(dr.gather(Float, arrays[name], UInt(i)) for i in range(x[name].numel()))
     layout = _Layout(opts["mode"], opts["view"], opts["k_d"], opts["k_s"], opts["alpha"], opts["spec_albedo"], n, h, w,
-                     tuple((name, x[name][0].numel()) for name in _PER_IMAGE), shared, wants)
+                     pixels_per_lane(w), tuple((name, x[name][0].numel()) for name in _PER_IMAGE), shared, wants)
 
     if grad_out is None:
         out = _frozen(_shade_forward)(layout, arrays)
@@ -521,7 +518,7 @@ def shade(normal: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor | None 
     intr = _intrinsics(camera, n, h, w, dtype, device)
 
     def cast(t: Any) -> Any:
-        return t.to(dtype) if isinstance(t, torch.Tensor) else t
+        return t.to(dtype) if isinstance(t, torch.Tensor) and t.dtype != dtype else t
 
     opts = {"mode": mode, "view": view, "k_d": float(k_d), "k_s": float(k_s),
             "alpha": None if isinstance(alpha, torch.Tensor) else float(alpha),
