@@ -28,6 +28,7 @@ Values at the limits (all finite in value and gradient, ``tests/test_shading.py`
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -178,19 +179,23 @@ class CameraLights:
         )
 
 
-def _intrinsics(camera: Camera | Sequence[Camera] | None, batch: int, height: int, width: int,
-                dtype: torch.dtype, device: Any) -> torch.Tensor:
-    """(B, 3) rows [f, cx, cy] in pixels, or one shared row when every camera has the same (the usual
-    case, read once by the kernel); the paper's 50 mm / 36 mm pinhole when no camera is given."""
+def _intrinsics(camera: Camera | Sequence[Camera] | None, batch: int, height: int, width: int) -> tuple:
+    """Rows (f, cx, cy) in pixels, one per camera or one shared row when every camera has the same (the
+    usual case, read once by the kernel); the paper's 50 mm / 36 mm pinhole when no camera is given."""
     cameras = [camera] if isinstance(camera, Camera) else list(camera or [])
     for c in cameras:
         if (c.width, c.height) != (width, height):
             raise ValueError(f"camera is {c.width}x{c.height} but the maps are {width}x{height}")
-    rows = [[c.focal_px, c.cx, c.cy] for c in cameras] or [[PAPER_FOCAL_MM / PAPER_FILM_MM * width, width / 2, height / 2]]
+    rows = tuple((float(c.focal_px), float(c.cx), float(c.cy)) for c in cameras) or (
+        (PAPER_FOCAL_MM / PAPER_FILM_MM * width, width / 2, height / 2),)
     if len(rows) not in (1, batch):
         raise ValueError(f"got {len(rows)} cameras for a batch of {batch}")
-    if all(row == rows[0] for row in rows):
-        rows = rows[:1]
+    return rows[:1] if all(row == rows[0] for row in rows) else rows
+
+
+@functools.lru_cache(maxsize=32)
+def _intrinsics_tensor(rows: tuple, dtype: torch.dtype, device: str) -> torch.Tensor:
+    """The rows as a (B, 3) tensor, made once per camera set (never modified)."""
     return torch.tensor(rows, dtype=dtype, device=device)
 
 
@@ -232,9 +237,20 @@ def _torch_shade(normal, albedo, mask, depth, intr, lights: CameraLights, alpha,
 
 # --------------------------------------------------------------------------- Dr.Jit backend
 
-_INPUTS = ("normal", "albedo", "mask", "depth", "intr", "directions", "irradiance", "positions", "intensity",
+_INPUTS = ("normal", "albedo", "mask", "depth", "directions", "irradiance", "positions", "intensity",
            "alpha", "spec_albedo")
-_PER_IMAGE = ("intr", "directions", "irradiance", "positions", "intensity")  # (1 or N, ...) rows
+_PER_IMAGE = ("directions", "irradiance", "positions", "intensity")  # (1 or N, ...) rows
+
+
+@functools.lru_cache(maxsize=32)
+def _drjit_intrinsics(rows: tuple, float_type: type) -> Any:
+    """The intrinsics rows as Dr.Jit values, made once per camera set: one opaque scalar per value for
+    a shared row (a uniform load in the kernel), else one flat array."""
+    dr = backend.drjit()
+    values = [v for row in rows for v in row]
+    if len(rows) == 1:
+        return tuple(dr.opaque(float_type, v) for v in values)
+    return dr.opaque(float_type, float_type(values))
 
 
 def pixels_per_lane(width: int) -> int:
@@ -404,8 +420,8 @@ def _frozen(fn: Callable) -> Callable:
     return _FROZEN[fn.__name__]
 
 
-def _drjit_run(opts: dict, inputs: Sequence[torch.Tensor | None], grad_out: torch.Tensor | None = None,
-               needs: Sequence[bool] = ()) -> Any:
+def _drjit_run(opts: dict, intrinsics: tuple, inputs: Sequence[torch.Tensor | None],
+               grad_out: torch.Tensor | None = None, needs: Sequence[bool] = ()) -> Any:
     """Shade in Dr.Jit; with ``grad_out``, return the input gradients (in :data:`_INPUTS` order) instead.
 
     Every call builds the Dr.Jit graph anew from the saved inputs (or replays its recording), so any
@@ -430,8 +446,12 @@ def _drjit_run(opts: dict, inputs: Sequence[torch.Tensor | None], grad_out: torc
     shared = tuple(name for name in _PER_IMAGE if name in arrays and x[name].shape[0] == 1 and name not in wants)
     for name in shared:
         arrays[name] = tuple(dr.gather(Float, arrays[name], UInt(i)) for i in range(x[name].numel()))
+    arrays["intr"] = _drjit_intrinsics(intrinsics, Float)
+    if len(intrinsics) == 1:
+        shared += ("intr",)
     layout = _Layout(opts["mode"], opts["view"], opts["k_d"], opts["k_s"], opts["alpha"], opts["spec_albedo"], n, h, w,
-                     pixels_per_lane(w), tuple((name, x[name][0].numel()) for name in _PER_IMAGE), shared, wants)
+                     pixels_per_lane(w), (("intr", 3),) + tuple((name, x[name][0].numel()) for name in _PER_IMAGE),
+                     shared, wants)
 
     if grad_out is None:
         out = _frozen(_shade_forward)(layout, arrays)
@@ -456,16 +476,17 @@ class _DrJitShade(torch.autograd.Function):
     """torch autograd around :func:`_drjit_run`; backward recomputes the Dr.Jit graph (see there)."""
 
     @staticmethod
-    def forward(ctx, opts, *inputs):  # type: ignore[override]
-        ctx.opts = opts
+    def forward(ctx, opts, intrinsics, *inputs):  # type: ignore[override]
+        ctx.opts, ctx.intrinsics = opts, intrinsics
         ctx.save_for_backward(*inputs)
-        return _drjit_run(opts, inputs)
+        return _drjit_run(opts, intrinsics, inputs)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out):  # type: ignore[override]
-        grads = _drjit_run(ctx.opts, ctx.saved_tensors, grad_out=grad_out, needs=ctx.needs_input_grad[1:])
-        return (None, *grads)
+        grads = _drjit_run(ctx.opts, ctx.intrinsics, ctx.saved_tensors, grad_out=grad_out,
+                           needs=ctx.needs_input_grad[2:])
+        return (None, None, *grads)
 
 
 # --------------------------------------------------------------------------- public API
@@ -515,7 +536,7 @@ def shade(normal: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor | None 
         raise ValueError("shade: point lights need the depth map (depth=...)")
     if lights.directions.shape[1] + lights.positions.shape[1] == 0:
         raise ValueError("shade: no lights given")
-    intr = _intrinsics(camera, n, h, w, dtype, device)
+    intrinsics = _intrinsics(camera, n, h, w)
 
     def cast(t: Any) -> Any:
         return t.to(dtype) if isinstance(t, torch.Tensor) and t.dtype != dtype else t
@@ -525,12 +546,13 @@ def shade(normal: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor | None 
             "spec_albedo": None if isinstance(spec_albedo, torch.Tensor) else float(spec_albedo)}
     light_tensors = [cast(t) for t in (lights.directions, lights.irradiance, lights.positions, lights.intensity)]
     if backend == "torch":
+        intr = _intrinsics_tensor(intrinsics, dtype, str(device))
         return _torch_shade(cast(normal), cast(albedo), cast(mask), cast(depth), intr, CameraLights(*light_tensors),
                             cast(alpha), cast(spec_albedo), opts)
-    inputs = [cast(normal), cast(albedo), cast(mask), cast(depth), intr, *light_tensors,
+    inputs = [cast(normal), cast(albedo), cast(mask), cast(depth), *light_tensors,
               cast(alpha) if isinstance(alpha, torch.Tensor) else None,
               cast(spec_albedo) if isinstance(spec_albedo, torch.Tensor) else None]
-    return _DrJitShade.apply(opts, *inputs)
+    return _DrJitShade.apply(opts, intrinsics, *inputs)
 
 
 def render_diffuse(normal: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor | None,
