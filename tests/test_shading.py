@@ -282,8 +282,12 @@ def test_shared_lights_gradients_agree():
         torch.testing.assert_close(a, b)
 
 
+@pytest.mark.parametrize("freeze", [True, False])
 @pytest.mark.parametrize("width", [5, 6, 8])  # 1, 2 and 4 pixels per kernel lane
-def test_every_row_width_agrees_with_torch(width):
+def test_every_row_width_agrees_with_torch(width, freeze, monkeypatch):
+    from ngp_mi.render import shading
+
+    monkeypatch.setattr(shading, "FREEZE", freeze)
     values, grads = {}, {}
     for backend in BACKENDS:
         x, cams = random_inputs(n=2, h=3, w=width, dtype=torch.float32, seed=width)

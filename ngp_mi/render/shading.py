@@ -262,8 +262,9 @@ def pixels_per_lane(width: int) -> int:
     A lane then reads each map channel with one packet load of 4 values instead of 4 gathers, and
     reads the per-image light values once for its 4 pixels; its reverse writes the map gradients
     with packet stores and scatter-adds the light gradients 4x less often. Measured at 8 x 256²
-    (bench/RESULTS.md): forward kernel 2.4 -> 1.0 ms diffuse; 8 pixels per lane made the kernel no
-    faster and the per-call tracing slower (every arithmetic operation becomes one JIT variable per pixel).
+    (bench/RESULTS.md, interleaved A/B against 1 pixel per lane): forward kernel 3.5 -> 1.4 ms diffuse,
+    4.9 -> 2.8 ms Blinn-Phong; forward + backward 26 -> 14 ms and 31 -> 22 ms. 8 pixels per lane were
+    no faster, and they make the first (traced) call slower: every operation is one JIT variable per pixel.
     """
     return 4 if width % 4 == 0 else 2 if width % 2 == 0 else 1
 
@@ -411,13 +412,22 @@ def _shade_backward(layout: _Layout, arrays: dict, grad_out: Any) -> dict:
     return grads
 
 
+#: Record the Dr.Jit op's kernels once per layout and replay them (``dr.freeze``). Set to False to
+#: trace every call instead (same values; for debugging, or should a platform's Dr.Jit misbehave).
+FREEZE = True
 _FROZEN: dict[str, Callable] = {}
 
 
 def _frozen(fn: Callable) -> Callable:
-    """``dr.freeze(fn)``, made once: a replay skips the Python tracing and the kernel's code generation
-    (0.6 / 1.0 ms of a 2.5 / 3.3 ms forward, diffuse / Blinn-Phong at 8 x 256²). Keyed by the
-    :class:`_Layout`; the 16 most recent layouts are kept."""
+    """``dr.freeze(fn)``, made once; ``fn`` itself when :data:`FREEZE` is off.
+
+    A replay skips the Python tracing and the kernel's code generation: at 8 x 256² the forward is
+    1.3x faster (diffuse 3.25 -> 2.52 ms, Blinn-Phong 4.74 -> 3.49 ms) and forward + backward 1.15-1.2x
+    (interleaved A/B, bench/RESULTS.md). Keyed by the :class:`_Layout` (and Dr.Jit's flags); the 16
+    most recent layouts are kept.
+    """
+    if not FREEZE:
+        return fn
     if fn.__name__ not in _FROZEN:
         _FROZEN[fn.__name__] = backend.drjit().freeze(fn, limit=16, warn_after=64)
     return _FROZEN[fn.__name__]
