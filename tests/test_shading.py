@@ -325,3 +325,26 @@ def test_replayed_kernels_give_new_inputs_right_values_and_gradients():
         for g, r in zip(grads, ref_grads):
             torch.testing.assert_close(g, r, rtol=1e-5, atol=1e-5 * max(1.0, r.abs().max().item()))
     assert [f.n_recordings for f in frozen] == recordings
+
+
+def test_repeated_calls_do_not_grow_memory():
+    """Recorded kernels are replayed with each call's arrays; nothing may accumulate per call."""
+    cams = [Camera.orbit(10.0, -60.0 + 15 * i, 32) for i in range(4)]
+
+    def step(seed):
+        g = torch.Generator().manual_seed(seed)
+        normal = torch.randn(4, 3, 32, 32, generator=g).requires_grad_()
+        albedo = torch.rand(4, 3, 32, 32, generator=g).requires_grad_()
+        lights = CameraLights.from_lights(overhead_rig(), cams)
+        lights.irradiance.requires_grad_()
+        shade(normal, albedo, None, lights, cams).mean().backward()
+
+    def rss_mib():
+        return int(open("/proc/self/statm").read().split()[1]) * 4096 / 2 ** 20
+
+    for seed in range(30):
+        step(seed)
+    before = rss_mib()
+    for seed in range(300):
+        step(seed)
+    assert rss_mib() - before < 5, f"RSS grew by {rss_mib() - before:.1f} MiB over 300 calls"
