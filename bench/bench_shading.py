@@ -10,7 +10,7 @@ interleaved within each repetition. Dr.Jit's worker threads spin for a while aft
 which steals a core from whatever runs next; back-to-back blocks of calls would charge that to
 torch. Ratios are medians of per-repetition ratios. Prints Markdown tables.
 
-    .venv/bin/python bench/bench_shading.py [--repeats 21] [--rest-ms 30] [--res 256] [--device cuda]
+    .venv/bin/python bench/bench_shading.py [--repeats 21] [--rest-ms 30] [--busy] [--res 256] [--device cuda]
 """
 
 from __future__ import annotations
@@ -36,9 +36,17 @@ def sync() -> None:
         torch.cuda.synchronize()
 
 
-def timed(fn, rest_s: float) -> float:
+def busy_work(seconds: float) -> None:
+    """Stand-in for a training step's other work: small matrix products on torch's threads."""
+    a = torch.rand(256, 256)
+    end = time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        a = torch.tanh(a @ a)
+
+
+def timed(fn, rest_s: float, busy: bool = False) -> float:
     sync()
-    time.sleep(rest_s)
+    busy_work(rest_s) if busy else time.sleep(rest_s)
     start = time.perf_counter()
     fn()
     sync()
@@ -49,6 +57,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--repeats", type=int, default=21)
     parser.add_argument("--rest-ms", type=float, default=30.0)
+    parser.add_argument("--busy", action="store_true",
+                        help="spend the rest in torch matrix products (as between a training step's calls) "
+                             "instead of idle")
     parser.add_argument("--res", type=int, default=256)
     parser.add_argument("--device", default="cpu", help="torch device of the maps (cuda: Dr.Jit's CUDA backend)")
     args = parser.parse_args()
@@ -86,10 +97,10 @@ def main() -> None:
     copies = []
     rest = args.rest_ms / 1e3
     for _ in range(args.repeats):
-        copies.append(timed(lambda: dst.copy_(src), rest))
+        copies.append(timed(lambda: dst.copy_(src), rest, args.busy))
         for key, (forward, forward_backward) in variants.items():
-            times[key][0].append(timed(forward, rest))
-            times[key][1].append(timed(forward_backward, rest))
+            times[key][0].append(timed(forward, rest, args.busy))
+            times[key][1].append(timed(forward_backward, rest, args.busy))
 
     bandwidth = 2 * src.numel() * 4 / statistics.median(copies)  # read + write
     pixels = N * res * res
@@ -104,7 +115,7 @@ def main() -> None:
 
     print(f"# bench_shading — {time.strftime('%Y-%m-%d')}, {platform.machine()}, {b.variant}, maps on {args.device}, "
           f"{b.threads} threads, torch {torch.__version__} ({torch.get_num_threads()} threads); {N} x {res}², "
-          f"4 lights per camera, {args.repeats} interleaved repetitions, {args.rest_ms:g} ms rest before each call\n")
+          f"4 lights per camera, {args.repeats} interleaved repetitions, {args.rest_ms:g} ms {'of torch work' if args.busy else 'idle'} before each call\n")
     print(f"copy bandwidth {bandwidth / 1e9:.1f} GB/s; forward traffic {fwd_bytes / 2 ** 20:.1f} MiB "
           f"-> floor {1e3 * floor:.2f} ms\n")
     print("| mode | backend | forward ms | fwd+bwd ms | forward / floor |\n|---|---|---|---|---|")
