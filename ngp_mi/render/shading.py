@@ -273,8 +273,7 @@ class _Layout(NamedTuple):
     """Everything the traced Dr.Jit code depends on besides the arrays' contents.
 
     It is the key of the frozen functions below: a call with another layout traces anew, one with
-    the same layout replays the recorded kernel. (A named tuple: made on every call, 3x cheaper than
-    a frozen dataclass.)
+    the same layout replays the recorded kernel. (A named tuple: it is made on every call.)
     """
 
     mode: str
