@@ -348,3 +348,21 @@ def test_repeated_calls_do_not_grow_memory():
     for seed in range(300):
         step(seed)
     assert rss_mib() - before < 5, f"RSS grew by {rss_mib() - before:.1f} MiB over 300 calls"
+
+
+def test_maps_that_start_off_a_packet_boundary():
+    """Views into a larger tensor may start at any element; the kernel's packet loads must not care."""
+    x, cams = random_inputs(n=2, h=4, w=8, dtype=torch.float32, seed=7)
+    storage = torch.zeros(1 + x["normal"].numel())
+    storage[1:] = x["normal"].detach().reshape(-1)
+    for backend in BACKENDS:
+        x[f"normal_{backend}"] = storage[1:].view(x["normal"].shape).requires_grad_()
+    assert x["normal_drjit"].data_ptr() % 16 != 0
+    results = {}
+    for backend in BACKENDS:
+        lights = CameraLights(x["directions"], x["irradiance"], x["positions"], x["intensity"])
+        out = shade(x[f"normal_{backend}"], x["albedo"], x["mask"], lights, cams, depth=x["depth"], backend=backend)
+        (out * torch.linspace(-1, 2, out.numel()).reshape(out.shape)).sum().backward()
+        results[backend] = (out.detach(), x[f"normal_{backend}"].grad)
+    for a, b in zip(results["drjit"], results["torch"]):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)

@@ -432,6 +432,13 @@ def _frozen(fn: Callable) -> Callable:
     return _FROZEN[fn.__name__]
 
 
+def _packet_aligned(t: torch.Tensor, packet_bytes: int) -> torch.Tensor:
+    """``t`` itself (no copy) when its data starts on a packet boundary, else an aligned copy: the
+    kernel reads maps with packet loads, which on a GPU must be aligned (a view into a larger
+    tensor may start anywhere)."""
+    return t if t.data_ptr() % packet_bytes == 0 else t.clone()
+
+
 def _drjit_run(opts: dict, intrinsics: tuple, inputs: Sequence[torch.Tensor | None],
                grad_out: torch.Tensor | None = None, needs: Sequence[bool] = ()) -> Any:
     """Shade in Dr.Jit; with ``grad_out``, return the input gradients (in :data:`_INPUTS` order) instead.
@@ -454,7 +461,8 @@ def _drjit_run(opts: dict, intrinsics: tuple, inputs: Sequence[torch.Tensor | No
             # reduction, 2.5x slower than one row per image (summed back below).
             x[name] = x[name].expand(n, *x[name].shape[1:])
             expanded.add(name)
-    arrays = {name: Float(t.detach().reshape(-1)) for name, t in x.items() if t.numel()}  # no copy when contiguous
+    packet = pixels_per_lane(w) * normal.element_size()
+    arrays = {name: Float(_packet_aligned(t.detach().reshape(-1), packet)) for name, t in x.items() if t.numel()}
     shared = tuple(name for name in _PER_IMAGE if name in arrays and x[name].shape[0] == 1 and name not in wants)
     for name in shared:
         arrays[name] = tuple(dr.gather(Float, arrays[name], UInt(i)) for i in range(x[name].numel()))
@@ -471,7 +479,7 @@ def _drjit_run(opts: dict, intrinsics: tuple, inputs: Sequence[torch.Tensor | No
 
     g = grad_out.detach().to(normal.dtype)
     scalar = all(s == 0 for s in g.stride())
-    g = Float(g.as_strided((1,), (1,)) if scalar else g.contiguous().reshape(-1))
+    g = Float(g.as_strided((1,), (1,)) if scalar else _packet_aligned(g.reshape(-1), packet))
     grads = _frozen(_shade_backward)(layout._replace(grad_scalar=scalar), arrays, g)
     result = []
     for name in _INPUTS:
