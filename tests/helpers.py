@@ -19,6 +19,12 @@ def trimesh_depth(mesh: TriangleMesh, camera: Camera) -> np.ndarray:
     return depth.reshape(camera.height, camera.width)
 
 
+def rss_mib() -> float:
+    """Resident memory of this process in MiB."""
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * 4096 / 2 ** 20
+
+
 def analytic_sphere(camera: Camera, radius: float):
     """z-depth, camera-space normal and mask of a sphere at the origin, at pixel centres."""
     rays = camera.pixel_rays()

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-from helpers import compiled_kernels, trimesh_depth
+from helpers import compiled_kernels, rss_mib, trimesh_depth
 from ngp_mi import backend
 from ngp_mi.camera import Camera
 from ngp_mi.geometry.primitives import box, simple_chair
@@ -193,11 +193,6 @@ def test_batch_of_views_equals_single_views():
             torch.testing.assert_close(getattr(batch, name)[i], getattr(single, name)[0])
 
 
-def _rss_mib() -> float:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * 4096 / 2 ** 20
-
-
 def test_new_vertices_reuse_kernels_and_memory_stays_flat():
     mesh = simple_chair()
     cams = [Camera.orbit(10, 20, 32), Camera.orbit(5, -40, 32)]
@@ -212,10 +207,10 @@ def test_new_vertices_reuse_kernels_and_memory_stays_flat():
         step(i)
     launched, compiled = compiled_kernels(lambda: [step(i) for i in range(6, 10)])
     assert launched and not compiled, "a new vertex set recompiled a kernel"
-    rss = _rss_mib()
+    rss = rss_mib()
     for i in range(10, 70):
         step(i)
-    assert _rss_mib() - rss < 40, f"RSS grew by {_rss_mib() - rss:.1f} MiB over 60 calls"
+    assert rss_mib() - rss < 40, f"RSS grew by {rss_mib() - rss:.1f} MiB over 60 calls"
 
 
 def test_bad_input_is_named():

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from helpers import analytic_sphere
+from helpers import analytic_sphere, compiled_kernels, rss_mib
 from ngp_mi.camera import Camera
 from ngp_mi.lights import DirectionalLight, PointLight, overhead_rig
 from ngp_mi.render.scene import build_scene, diffuse_bsdf, render
@@ -303,17 +303,16 @@ def test_every_row_width_agrees_with_torch(width, freeze, monkeypatch):
 def test_replayed_kernels_give_new_inputs_right_values_and_gradients():
     """The Dr.Jit op records its kernels once per layout (``dr.freeze``); later calls replay them with
     the new arrays. Each call must see its own inputs, and replaying must trace and compile nothing."""
-    from helpers import compiled_kernels
     from ngp_mi.render import shading
 
-    def call(seed, backend, weights=None):
+    def call(seed, backend):
         x, cams = random_inputs(n=2, h=4, w=8, dtype=torch.float32, seed=seed)
         out = run(x, cams, backend, mode="blinn_phong")
-        w = torch.linspace(-1, 2, out.numel()).reshape(out.shape) if weights is None else weights
-        (out * w).sum().backward()
+        (out * torch.linspace(-1, 2, out.numel()).reshape(out.shape)).sum().backward()
         return out.detach(), [t.grad for t in x.values()]
 
-    call(100, "drjit"), compiled_kernels(lambda: call(101, "drjit"))  # record (Dr.Jit's flags are part of the key)
+    call(100, "drjit")  # records; so does the call below: Dr.Jit's flags are part of the key
+    compiled_kernels(lambda: call(101, "drjit"))
     frozen = [shading._FROZEN[name] for name in ("_shade_forward", "_shade_backward")]
     recordings = [f.n_recordings for f in frozen]
     for seed in (1, 2, 3):
@@ -338,9 +337,6 @@ def test_repeated_calls_do_not_grow_memory():
         lights = CameraLights.from_lights(overhead_rig(), cams)
         lights.irradiance.requires_grad_()
         shade(normal, albedo, None, lights, cams).mean().backward()
-
-    def rss_mib():
-        return int(open("/proc/self/statm").read().split()[1]) * 4096 / 2 ** 20
 
     for seed in range(30):
         step(seed)

@@ -2,12 +2,8 @@
 
 import pytest
 
+from helpers import rss_mib
 from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
-
-
-def _rss_mib() -> float:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * 4096 / 2 ** 20
 
 
 @pytest.mark.slow
@@ -18,6 +14,6 @@ def test_dataset_memory_stays_flat_over_2000_views(tmp_path):
         config = DatasetConfig(source="chair", num_shapes=25, views=10, resolution=64, seed=1000 * chunk)
         summary = render_dataset(config, tmp_path / str(chunk), progress=False)
         assert summary["views_rendered"] == 250
-        samples.append(_rss_mib())
+        samples.append(rss_mib())
     # 5 MiB: a kernel compiled per shape (a literal in the trace) grew it by 14 MiB over these views
     assert samples[-1] - samples[0] < 5, f"RSS after each 250 views: {samples}"
