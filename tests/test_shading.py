@@ -45,24 +45,29 @@ def run(x, cameras, backend, mode="blinn_phong", view="per_pixel"):
                  spec_albedo=x["spec_albedo"], mode=mode, view=view, backend=backend)
 
 
+def value_and_grads(backend, mode="blinn_phong", view="per_pixel", **inputs):
+    """Shade float32 random inputs, backpropagate a weighted sum; return the image and every input's gradient."""
+    x, cams = random_inputs(dtype=torch.float32, **inputs)
+    out = run(x, cams, backend, mode, view)
+    (out * torch.linspace(-1, 2, out.numel()).reshape(out.shape)).sum().backward()
+    return out.detach(), {k: v.grad for k, v in x.items()}
+
+
+def assert_backends_agree(mode="blinn_phong", view="per_pixel", **inputs):
+    """Values to 1e-5, gradients to 1e-5 of their largest magnitude (at least 1)."""
+    (out, grads), (ref, ref_grads) = (value_and_grads(backend, mode, view, **inputs) for backend in BACKENDS)
+    torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5)
+    for name, g in ref_grads.items():
+        if g is None:
+            assert grads[name] is None or not grads[name].any()
+            continue
+        torch.testing.assert_close(grads[name], g, rtol=1e-5, atol=1e-5 * max(1.0, g.abs().max().item()), msg=name)
+
+
 @pytest.mark.parametrize("mode", ["diffuse", "blinn_phong"])
 @pytest.mark.parametrize("view", ["per_pixel", "constant"])
 def test_backends_agree_in_value_and_gradient(mode, view):
-    outs, grads = {}, {}
-    for backend in BACKENDS:
-        x, cams = random_inputs(n=3, h=16, w=12, dtype=torch.float32)
-        out = run(x, cams, backend, mode, view)
-        weights = torch.linspace(-1, 2, out.numel()).reshape(out.shape)
-        (out * weights).sum().backward()
-        outs[backend] = out.detach()
-        grads[backend] = {k: v.grad for k, v in x.items()}
-    torch.testing.assert_close(outs["drjit"], outs["torch"], rtol=1e-5, atol=1e-5)
-    for name, g in grads["torch"].items():
-        if g is None:
-            assert grads["drjit"][name] is None or not grads["drjit"][name].any()
-            continue
-        scale = max(1.0, g.abs().max().item())
-        torch.testing.assert_close(grads["drjit"][name], g, rtol=1e-5, atol=1e-5 * scale, msg=name)
+    assert_backends_agree(mode, view, n=3, h=16, w=12)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -288,16 +293,7 @@ def test_every_row_width_agrees_with_torch(width, freeze, monkeypatch):
     from ngp_mi.render import shading
 
     monkeypatch.setattr(shading, "FREEZE", freeze)
-    values, grads = {}, {}
-    for backend in BACKENDS:
-        x, cams = random_inputs(n=2, h=3, w=width, dtype=torch.float32, seed=width)
-        out = run(x, cams, backend)
-        (out * torch.linspace(-1, 2, out.numel()).reshape(out.shape)).sum().backward()
-        values[backend], grads[backend] = out.detach(), {k: v.grad for k, v in x.items()}
-    torch.testing.assert_close(values["drjit"], values["torch"], rtol=1e-5, atol=1e-5)
-    for name, g in grads["torch"].items():
-        torch.testing.assert_close(grads["drjit"][name], g, rtol=1e-5, atol=1e-5 * max(1.0, g.abs().max().item()),
-                                   msg=name)
+    assert_backends_agree(n=2, h=3, w=width, seed=width)
 
 
 def test_replayed_kernels_give_new_inputs_right_values_and_gradients():
@@ -305,24 +301,15 @@ def test_replayed_kernels_give_new_inputs_right_values_and_gradients():
     the new arrays. Each call must see its own inputs, and replaying must trace and compile nothing."""
     from ngp_mi.render import shading
 
-    def call(seed, backend):
-        x, cams = random_inputs(n=2, h=4, w=8, dtype=torch.float32, seed=seed)
-        out = run(x, cams, backend, mode="blinn_phong")
-        (out * torch.linspace(-1, 2, out.numel()).reshape(out.shape)).sum().backward()
-        return out.detach(), [t.grad for t in x.values()]
-
-    call(100, "drjit")  # records; so does the call below: Dr.Jit's flags are part of the key
-    compiled_kernels(lambda: call(101, "drjit"))
+    shape = {"n": 2, "h": 4, "w": 8}
+    value_and_grads("drjit", seed=100, **shape)  # records; so does the call below: Dr.Jit's flags are in the key
+    compiled_kernels(lambda: value_and_grads("drjit", seed=101, **shape))
     frozen = [shading._FROZEN[name] for name in ("_shade_forward", "_shade_backward")]
     recordings = [f.n_recordings for f in frozen]
     for seed in (1, 2, 3):
-        launched, compiled = compiled_kernels(lambda: call(seed, "drjit"))
+        launched, compiled = compiled_kernels(lambda: value_and_grads("drjit", seed=seed, **shape))
         assert len(launched) == 2 and not compiled  # one forward and one backward kernel, from the cache
-        out, grads = call(seed, "drjit")
-        ref, ref_grads = call(seed, "torch")
-        torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5)
-        for g, r in zip(grads, ref_grads):
-            torch.testing.assert_close(g, r, rtol=1e-5, atol=1e-5 * max(1.0, r.abs().max().item()))
+        assert_backends_agree(seed=seed, **shape)
     assert [f.n_recordings for f in frozen] == recordings
 
 
