@@ -291,6 +291,10 @@ class _Layout(NamedTuple):
     wants: tuple[str, ...] = ()        # inputs that need a gradient (backward only)
     grad_scalar: bool = False          # the upstream gradient is one broadcast value (backward only)
 
+    @property
+    def lanes_per_image(self) -> int:
+        return self.h * self.w // self.k
+
     def count(self, name: str) -> int:
         """Lights in a per-image input (its values per row / 3)."""
         return next((width // 3 for row_name, width in self.rows if row_name == name), 0)
@@ -312,7 +316,7 @@ def _shade_graph(layout: _Layout, arrays: dict) -> tuple[Vec, dict, Any, Any]:
     Pixels = mod.ArrayXf64 if Float is mod.Float64 else mod.ArrayXf
     UInt = mod.UInt
     n, w, k = layout.n, layout.w, layout.k
-    per_image = layout.h * w // k  # lanes per image
+    per_image = layout.lanes_per_image
     lanes = n * per_image
 
     idx = dr.arange(UInt, lanes)
@@ -371,7 +375,7 @@ def _shade_forward(layout: _Layout, arrays: dict) -> Any:
     dr = backend.drjit()
     rgb, _, _, base3 = _shade_graph(layout, arrays)
     Float = type(arrays["normal"])
-    per_image = layout.h * layout.w // layout.k
+    per_image = layout.lanes_per_image
     out = dr.empty(Float, layout.n * 3 * layout.h * layout.w)
     for c in range(3):
         # Permute (no two lanes write one element) lets the three packet stores share one kernel;
@@ -393,7 +397,7 @@ def _shade_backward(layout: _Layout, arrays: dict, grad_out: Any) -> dict:
             dr.enable_grad(arrays[name])
     rgb, leaves, idx, base3 = _shade_graph(layout, arrays)
     Pixels = type(rgb[0])
-    k, per_image = layout.k, layout.h * layout.w // layout.k
+    k, per_image = layout.k, layout.lanes_per_image
     for c in range(3):
         if layout.grad_scalar:
             dr.set_grad(rgb[c], Pixels([grad_out] * k))
@@ -461,7 +465,8 @@ def _drjit_run(opts: dict, intrinsics: tuple, inputs: Sequence[torch.Tensor | No
             # reduction, 2.5x slower than one row per image (summed back below).
             x[name] = x[name].expand(n, *x[name].shape[1:])
             expanded.add(name)
-    packet = pixels_per_lane(w) * normal.element_size()
+    k = pixels_per_lane(w)
+    packet = k * normal.element_size()
     arrays = {name: Float(_packet_aligned(t.detach().reshape(-1), packet)) for name, t in x.items() if t.numel()}
     shared = tuple(name for name in _PER_IMAGE if name in arrays and x[name].shape[0] == 1 and name not in wants)
     for name in shared:
@@ -470,7 +475,7 @@ def _drjit_run(opts: dict, intrinsics: tuple, inputs: Sequence[torch.Tensor | No
     if len(intrinsics) == 1:
         shared += ("intr",)
     layout = _Layout(opts["mode"], opts["view"], opts["k_d"], opts["k_s"], opts["alpha"], opts["spec_albedo"], n, h, w,
-                     pixels_per_lane(w), (("intr", 3),) + tuple((name, x[name][0].numel()) for name in _PER_IMAGE),
+                     k, (("intr", 3),) + tuple((name, x[name][0].numel()) for name in _PER_IMAGE),
                      shared, wants)
 
     if grad_out is None:
