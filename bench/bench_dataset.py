@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ngp_mi import backend
-from ngp_mi.data.render_dataset import DatasetConfig, default_workers, render_dataset, view_cameras
+from ngp_mi.data.render_dataset import DatasetConfig, default_workers, render_dataset
 from ngp_mi.geometry.families import generate
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -69,7 +69,7 @@ def blender_views_per_second(config: DatasetConfig, shapes: int, work: Path, wri
         npz = work / f"shape{index}.npz"
         np.savez(npz, vertices=mesh.vertices, faces=mesh.faces, part_ids=mesh.part_ids, albedo=albedo)
         matrices = []
-        for camera in view_cameras(config, index):
+        for camera in config.cameras(index):
             M = np.eye(4)
             M[:3, :3] = camera.R.T @ np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes -> Blender's (-Z forward)
             M[:3, 3] = camera.position
@@ -93,7 +93,7 @@ def render_ms(config: DatasetConfig, shapes: int) -> float:
     times = []
     for index, item in enumerate(resolve_source(config.source, shapes, config.seed)):
         content = item.load()
-        cameras = view_cameras(config, index)
+        cameras = config.cameras(index)
         renderer = GBufferRenderer(content.shapes, content.bounds, cameras[0], config.channels)
         for repeat in range(3):
             start = time.perf_counter()

@@ -17,11 +17,11 @@ import time
 from pathlib import Path
 
 import torch
+from ngp_mi.models.shape import ShapeModel
 
 from ngp_mi.geometry.extract import extract_mesh
 from ngp_mi.models.shape import LEVEL
 from ngp_mi.nets.imnet import ImplicitDecoder
-from ngp_mi.train_shape import load_shape_model
 
 
 def main() -> None:
@@ -34,7 +34,7 @@ def main() -> None:
     run = Path(args.run)
     if not run.exists():
         run = Path("outputs/train/shape_tiny")
-    model = load_shape_model(run, args.device)
+    model = ShapeModel.from_run(run, args.device)
     big = ImplicitDecoder(256, 128).to(args.device).eval()
     codes = [model.code_of(torch.randn(model.config.z_dim, generator=torch.Generator().manual_seed(s))
                            .to(args.device))[0].detach() for s in range(args.shapes)]

@@ -13,7 +13,6 @@ import resource
 import statistics
 import tempfile
 import time
-import tomllib
 from pathlib import Path
 
 import torch
@@ -22,7 +21,8 @@ from ngp_mi import backend
 from ngp_mi.data.datasets import DepthDataset, ReflectanceMapDataset
 from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
 from ngp_mi.models.maps import MapsModel
-from ngp_mi.train_maps import _Batches, model_config
+from ngp_mi.training.loop import SeededBatches
+from ngp_mi.training.maps import MapsRecipe
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -33,16 +33,16 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=8)
     args = parser.parse_args()
     b = backend.load()
-    config = tomllib.loads((ROOT / "train" / "maps_cpu.toml").read_text())
+    recipe = MapsRecipe.read(ROOT / "train" / "maps_cpu.toml")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for res in (64, 128):
             data = Path(tmp) / f"d{res}"
             render_dataset(DatasetConfig(source="chair", num_shapes=8, views=4, resolution=res), data, progress=False)
             torch.manual_seed(0)
-            model = MapsModel(model_config(config))
-            maps = _Batches(ReflectanceMapDataset(data), args.batch, 0, 0, 1)
-            depth = _Batches(DepthDataset(data), args.batch, 1, 0, 1)
+            model = MapsModel(recipe.model)
+            maps = SeededBatches(ReflectanceMapDataset(data), args.batch, 0)
+            depth = SeededBatches(DepthDataset(data), args.batch, 1)
             times = []
             for step in range(args.iterations + 1):
                 start = time.perf_counter()

@@ -23,6 +23,8 @@ from typing import Any
 
 import numpy as np
 
+from ngp_mi import backend
+
 PAPER_RADIUS = 2.0
 PAPER_FOCAL_MM = 50.0
 PAPER_FILM_MM = 36.0
@@ -190,8 +192,6 @@ class Camera:
         ``spp = 1`` with a ``box`` filter and an ``independent`` sampler jitters inside the pixel;
         for geometric maps sampled exactly at pixel centres use the G-buffer renderer instead.
         """
-        from ngp_mi import backend
-
         mi = backend.mitsuba()
         return {
             "type": "perspective",

@@ -1,28 +1,102 @@
-"""The ``ngp-mi`` command. Sub-commands only parse arguments and call library functions."""
+"""The ``ngp-mi`` command: one sub-command per job; each parses its flags and calls the library, nothing else.
+
+A flag that sets a field of a config (or a parameter of a function) takes its default from that
+dataclass or function, so every default lives in one place. A sub-command's flags are declared
+only when it is the one invoked (its module is imported then, as running it would), so that
+``ngp-mi --help`` and every other command start without importing torch.
+"""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import inspect
 import json
+import logging
 import sys
-from typing import Sequence
+from typing import Any, Callable, Sequence
 
 
-def _doctor(args: argparse.Namespace) -> int:
-    from ngp_mi.doctor import run_doctor
+def default(owner: Any, name: str) -> Any:
+    """The default of field ``name`` of a dataclass, or of parameter ``name`` of a function."""
+    if dataclasses.is_dataclass(owner):
+        return next(f.default for f in dataclasses.fields(owner) if f.name == name)
+    return inspect.signature(owner).parameters[name].default
+
+
+def at_least(minimum: int) -> Callable[[str], int]:
+    """An argparse type: an integer ``>= minimum`` (a sample count of 0 would divide by zero inside Mitsuba)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
+        return value
+    return parse
+
+
+def int_list(minimum: int) -> Callable[[str], tuple[int, ...]]:
+    """An argparse type: comma-separated integers, each ``>= minimum``."""
+    one = at_least(minimum)
+    return lambda text: tuple(one(x.strip()) for x in text.split(",") if x.strip())
+
+
+def _joined(values: Sequence[Any]) -> str:
+    return ",".join(str(v) for v in values)
+
+
+# --------------------------------------------------------------------------- sub-commands: flags, then the call
+
+def doctor_flags(p: argparse.ArgumentParser) -> None:
+    pass
+
+
+def doctor(args: argparse.Namespace) -> int:
+    from ngp_mi.commands.doctor import run_doctor
 
     return run_doctor()
 
 
-def _demo(args: argparse.Namespace) -> int:
-    from ngp_mi.demo import run_demo
+def demo_flags(p: argparse.ArgumentParser) -> None:
+    from ngp_mi.commands.demo import run_demo
+
+    p.add_argument("--out", default=default(run_demo, "out_dir"), help="output folder (default: %(default)s)")
+    p.add_argument("--res", type=at_least(8), default=default(run_demo, "resolution"),
+                   help="image size in pixels (default: %(default)s)")
+    p.add_argument("--views", type=at_least(1), default=default(run_demo, "views"),
+                   help="number of sampled views (default: %(default)s)")
+    p.add_argument("--spp", type=at_least(1), default=default(run_demo, "spp"),
+                   help="samples per pixel (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=default(run_demo, "seed"),
+                   help="random seed for views and noise (default: %(default)s)")
+
+
+def demo(args: argparse.Namespace) -> int:
+    from ngp_mi.commands.demo import run_demo
 
     run_demo(args.out, resolution=args.res, views=args.views, spp=args.spp, seed=args.seed)
     return 0
 
 
-def _families(args: argparse.Namespace) -> int:
-    from ngp_mi.demo import family_sheet
+def families_flags(p: argparse.ArgumentParser) -> None:
+    from ngp_mi.commands.demo import family_sheet
+
+    p.add_argument("family", choices=["chair", "car"], help="shape family")
+    p.add_argument("--count", type=at_least(1), default=default(family_sheet, "count"),
+                   help="number of samples (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=default(family_sheet, "first_seed"),
+                   help="first seed (default: %(default)s)")
+    p.add_argument("--res", type=at_least(8), default=default(family_sheet, "resolution"),
+                   help="image size (default: %(default)s)")
+    p.add_argument("--spp", type=at_least(1), default=default(family_sheet, "spp"),
+                   help="samples per pixel (default: %(default)s)")
+    p.add_argument("--out", help="PNG path (default: outputs/families/FAMILY.png)")
+
+
+def families(args: argparse.Namespace) -> int:
+    from ngp_mi.commands.demo import family_sheet
 
     path = family_sheet(args.family, args.out or f"outputs/families/{args.family}.png", count=args.count,
                         resolution=args.res, spp=args.spp, first_seed=args.seed)
@@ -30,9 +104,46 @@ def _families(args: argparse.Namespace) -> int:
     return 0
 
 
-def _render_dataset(args: argparse.Namespace) -> int:
-    import logging
+def render_dataset_flags(p: argparse.ArgumentParser) -> None:
+    from ngp_mi.data.exr import COMPRESSIONS
+    from ngp_mi.data.render_dataset import DatasetConfig
+    from ngp_mi.data.views import LIGHT_MODES
 
+    p.add_argument("--source", required=True, help="chair | car | a mesh folder / ShapeNet tree / mesh file | "
+                                                   "a Mitsuba scene .xml (or a folder of them)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--num-shapes", type=at_least(1), default=default(DatasetConfig, "num_shapes"),
+                   help="shapes to take from the source (default: %(default)s)")
+    p.add_argument("--views", type=at_least(1), default=default(DatasetConfig, "views"),
+                   help="views per shape (default: %(default)s)")
+    p.add_argument("--res", type=at_least(1), default=default(DatasetConfig, "resolution"),
+                   help="image size in pixels (default: %(default)s)")
+    p.add_argument("--channels", default=_joined(default(DatasetConfig, "channels")),
+                   help="G-buffer channels to write (default: %(default)s)")
+    p.add_argument("--real-spp", type=at_least(0), default=default(DatasetConfig, "real_spp"),
+                   help="samples per pixel of the path-traced 'real' image; 0 = none (default: %(default)s)")
+    p.add_argument("--lights", default=default(DatasetConfig, "lights"), choices=LIGHT_MODES,
+                   help="lights of the real images: the 4-light rig, random, or the scene file's own")
+    p.add_argument("--shard", default="0/1", help="K/N: render every N-th shape starting at K (default: 0/1)")
+    p.add_argument("--seed", type=int, default=default(DatasetConfig, "seed"),
+                   help="seed of shapes, views and noise (default: %(default)s)")
+    p.add_argument("--compression", default=default(DatasetConfig, "compression"), choices=sorted(COMPRESSIONS),
+                   help="EXR compression, all lossless (default: %(default)s, the fastest to write; zip: ~2x "
+                        "smaller); may differ between runs that fill one folder")
+    p.add_argument("--full-window", action="store_true", help="store every pixel of the maps, not only the "
+                   "object's bounding rectangle (the EXR data window; readers see zeros outside it either way)")
+    p.add_argument("--half", action="store_true", help="store all channels but depth as 16-bit floats (half the size)")
+    p.add_argument("--workers", type=at_least(0), default=0, help="processes splitting this shard's shapes "
+                   "(default: one per core, at most 8; 1 on a GPU)")
+    p.add_argument("--coarse-shapes", metavar="RUN", help="a `train shape` run: render each shape as its "
+                   "autoencoder reconstructs it (NGP's coarse shapes; ids and views pair with the detailed ones)")
+    p.add_argument("--coarse-resolution", type=at_least(8), default=default(DatasetConfig, "coarse_resolution"),
+                   help="marching-cubes grid of --coarse-shapes (default: %(default)s)")
+    p.add_argument("--strict", action="store_true", help="exit non-zero if any shape was skipped")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def render_dataset(args: argparse.Namespace) -> int:
     from ngp_mi.data.render_dataset import DatasetConfig, default_workers, parse_shard, render_dataset
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
@@ -41,8 +152,14 @@ def _render_dataset(args: argparse.Namespace) -> int:
                            real_spp=args.real_spp, lights=args.lights, seed=args.seed, compression=args.compression,
                            full_window=args.full_window, half=args.half, coarse_shapes=args.coarse_shapes,
                            coarse_resolution=args.coarse_resolution)
+    reconstruct = None
+    if args.coarse_shapes:
+        from ngp_mi.models.shape import CoarseShapes  # imports torch (~3 s): only coarse shapes need it
+
+        reconstruct = CoarseShapes(args.coarse_shapes, args.coarse_resolution)
     summary = render_dataset(config, args.out, shard=parse_shard(args.shard), strict=args.strict,
-                             progress=not args.quiet, workers=args.workers or default_workers())
+                             progress=not args.quiet, workers=args.workers or default_workers(),
+                             reconstruct=reconstruct)
     print(f"render-dataset: {summary['views_rendered']} views rendered ({summary['views_per_second']} views/s), "
           f"{summary['views_before']} already present, {len(summary['skipped_shapes'])} shapes skipped")
     for shape_id, reason in summary["skipped_shapes"].items():
@@ -50,30 +167,87 @@ def _render_dataset(args: argparse.Namespace) -> int:
     return 0
 
 
-def _compare(args: argparse.Namespace) -> int:
+def compare_flags(p: argparse.ArgumentParser) -> None:
+    from ngp_mi.eval.compare import CompareConfig
+
+    p.add_argument("--source", default=default(CompareConfig, "source"), help="chair | car | mesh folder / file | "
+                   "scene .xml (default: %(default)s)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--num-shapes", type=at_least(1), default=default(CompareConfig, "num_shapes"),
+                   help="shapes (default: %(default)s)")
+    p.add_argument("--views", type=at_least(1), default=default(CompareConfig, "views"),
+                   help="views per shape (default: %(default)s)")
+    p.add_argument("--res", type=at_least(8), default=default(CompareConfig, "resolution"),
+                   help="image size (default: %(default)s)")
+    p.add_argument("--lights", default=_joined(default(CompareConfig, "light_setups")),
+                   help="light setups, from rig,random,rig+random (the rig plus added lights: NGP-plus) "
+                        "(default: %(default)s)")
+    p.add_argument("--spp-ladder", type=int_list(1), default=default(CompareConfig, "spp_ladder"),
+                   help=f"path-tracing spp to compare (default: {_joined(default(CompareConfig, 'spp_ladder'))})")
+    p.add_argument("--reference-spp", type=at_least(1), default=default(CompareConfig, "reference_spp"),
+                   help="spp of the reference (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=default(CompareConfig, "seed"), help="seed (default: %(default)s)")
+    p.add_argument("--maps-checkpoint", help="a `train maps` run folder: adds NGP-BP, NGP, NGP-plus and the ablations "
+                                             "on generated maps")
+    p.add_argument("--inception-weights", help="local inception-2015-12-05.pt (TorchScript): adds FID / KID; "
+                                               "never downloaded")
+
+
+def compare(args: argparse.Namespace) -> int:
     from ngp_mi.eval.compare import CompareConfig, run_compare
 
     config = CompareConfig(source=args.source, num_shapes=args.num_shapes, views=args.views, resolution=args.res,
-                           light_setups=tuple(args.lights.split(",")),
-                           spp_ladder=tuple(int(x) for x in args.spp_ladder.split(",")),
+                           light_setups=tuple(args.lights.split(",")), spp_ladder=tuple(args.spp_ladder),
                            reference_spp=args.reference_spp, seed=args.seed, maps_checkpoint=args.maps_checkpoint,
                            inception_weights=args.inception_weights)
     run_compare(config, args.out)
     return 0
 
 
-def _train(args: argparse.Namespace) -> int:
+def train_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument("stage", choices=["shape", "maps"], help="what to train")
+    p.add_argument("--config", required=True, help="TOML recipe, e.g. train/maps_tiny.toml")
+    p.add_argument("--out", help="output folder (default: the recipe's [train] out)")
+    p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
+                   help="override a recipe value (TOML syntax; bare words are strings), checked like the file; "
+                        "repeatable, recorded in OUT/recipe.json. E.g. --set train.iterations=500")
+
+
+def train(args: argparse.Namespace) -> int:
     if args.stage == "shape":
-        from ngp_mi.train_shape import train_shape as run
+        from ngp_mi.training.shape import train_shape as run
     else:
-        from ngp_mi.train_maps import train_maps as run
-    out = run(args.config)
+        from ngp_mi.training.maps import train_maps as run
+    out = run(args.config, out=args.out, overrides=args.set)
     print(f"train {args.stage}: outputs in {out}")
     return 0
 
 
-def _sample_shapes(args: argparse.Namespace) -> int:
-    from ngp_mi.sample_shapes import sample_shapes
+def sample_shapes_flags(p: argparse.ArgumentParser) -> None:
+    from ngp_mi.commands.sample_shapes import sample_shapes
+
+    p.add_argument("--run", required=True, help="a `train shape` output folder (with ckpt-*)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--num", type=at_least(1), default=default(sample_shapes, "num"),
+                   help="number of shapes (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=default(sample_shapes, "seed"),
+                   help="latent seed of the first shape (default: %(default)s)")
+    p.add_argument("--resolution", type=at_least(8), default=default(sample_shapes, "resolution"),
+                   help="marching-cubes grid (default: %(default)s)")
+    p.add_argument("--coarse", type=at_least(4), default=default(sample_shapes, "coarse"),
+                   help="coarse grid of the coarse-to-fine pass (default: %(default)s)")
+    p.add_argument("--format", choices=["obj", "ply"], default=default(sample_shapes, "fmt"),
+                   help="mesh format (default: %(default)s)")
+    p.add_argument("--interpolate", type=int, nargs=2, metavar=("SEED_A", "SEED_B"),
+                   help="interpolate (slerp) between the latents of two seeds instead")
+    p.add_argument("--steps", type=at_least(2), default=default(sample_shapes, "steps"),
+                   help="interpolation steps (default: %(default)s)")
+    p.add_argument("--spp", type=at_least(1), default=default(sample_shapes, "spp"),
+                   help="samples per pixel of the previews (default: %(default)s)")
+
+
+def sample_shapes(args: argparse.Namespace) -> int:
+    from ngp_mi.commands.sample_shapes import sample_shapes
 
     summary = sample_shapes(args.run, args.out, num=args.num, seed=args.seed, resolution=args.resolution,
                             coarse=args.coarse, fmt=args.format, interpolate=tuple(args.interpolate) if args.interpolate
@@ -83,9 +257,33 @@ def _sample_shapes(args: argparse.Namespace) -> int:
     return 0
 
 
-def _generate(args: argparse.Namespace) -> int:
+def generate_flags(p: argparse.ArgumentParser) -> None:
+    from ngp_mi.commands.generate import generate
+
+    views = ";".join(f"{t:g},{f:g}" for t, f in default(generate, "views"))
+    p.add_argument("--maps-run", required=True, help="a `train maps` output folder (with the [specular] stage for "
+                                                     "ngp / ngp-plus)")
+    p.add_argument("--shape-run", help="a `train shape` output folder (shapes from z_s)")
+    p.add_argument("--mesh", help="a user mesh instead of sampled shapes")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--num", type=at_least(1), default=default(generate, "num"),
+                   help="shapes to sample (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=default(generate, "seed"),
+                   help="seed of z_s and z_da of the first shape (default: %(default)s)")
+    p.add_argument("--views", default=views, help="camera views 'THETA,PHI;…' in degrees (default: %(default)s)")
+    p.add_argument("--res", type=at_least(8), default=default(generate, "resolution"),
+                   help="image size (default: %(default)s)")
+    p.add_argument("--lights", default="rig", help="'rig' (the 4 overhead lights) or a lights JSON file")
+    p.add_argument("--add-lights", help="a lights JSON file of lights added by R_BP (variant ngp-plus)")
+    p.add_argument("--variant", default=default(generate, "variant").replace("_", "-"),
+                   choices=["ngp", "ngp-bp", "ngp-plus", "no-sp", "no-gn", "no-gda"],
+                   help="NGP variant or ablation (default: %(default)s)")
+    p.add_argument("--exemplar", help="an albedo image: its appearance code (E_da) instead of a sampled z_da")
+
+
+def generate(args: argparse.Namespace) -> int:
+    from ngp_mi.commands.generate import generate
     from ngp_mi.lights import load_lights, overhead_rig
-    from ngp_mi.pipeline import generate
 
     views = []
     for text in args.views.split(";"):
@@ -103,7 +301,20 @@ def _generate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _evaluate(args: argparse.Namespace) -> int:
+def evaluate_flags(p: argparse.ArgumentParser) -> None:
+    from ngp_mi.eval.maps_eval import evaluate_maps
+
+    p.add_argument("stage", choices=["maps"], help="what to evaluate")
+    p.add_argument("--run", required=True, help="training output folder (with ckpt-*)")
+    p.add_argument("--data", required=True, help="held-out render-dataset folder")
+    p.add_argument("--out", help="output folder (default: RUN/eval)")
+    p.add_argument("--coarse-sigma", type=float, default=default(evaluate_maps, "coarse_sigma"),
+                   help="smoothing of the coarse depth, px (without --coarse-data) (default: %(default)s)")
+    p.add_argument("--coarse-data", help="the same shapes and views rendered with `render-dataset --coarse-shapes "
+                                         "SHAPE_RUN`: coarse depth from the shape autoencoder")
+
+
+def evaluate(args: argparse.Namespace) -> int:
     from ngp_mi.eval.maps_eval import evaluate_maps
 
     result = evaluate_maps(args.run, args.data, args.out or f"{args.run}/eval", coarse_sigma=args.coarse_sigma,
@@ -112,155 +323,59 @@ def _evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="ngp-mi", description="Neural Graphics Pipeline on Mitsuba 3 / Dr.Jit and PyTorch.")
+#: name → (flags, run, one-line help, description)
+COMMANDS: dict[str, tuple[Callable, Callable, str, str]] = {
+    "doctor": (doctor_flags, doctor, "print versions, backend and a timed test render; exit 0 if rendering works",
+               "Print versions, the Mitsuba variant, libLLVM and a timed test render."),
+    "demo": (demo_flags, demo, "render the showcase contact sheets under outputs/demo",
+             "Path trace a procedural chair from the paper's view distribution under the 4-light overhead rig, "
+             "and 16 samples of each shape family."),
+    "families": (families_flags, families, "contact sheet of samples of a procedural shape family",
+                 "Path trace consecutive seeds of a procedural family (chair, car) with their part materials into "
+                 "one contact sheet."),
+    "render-dataset": (render_dataset_flags, render_dataset,
+                       "render reference maps (EXR) and path-traced images of many shapes",
+                       "Render G-buffer maps (depth, normal, albedo, NOC, mask) and optionally path-traced 'real' "
+                       "images for shapes x sampled views, with a manifest. Resumable; shardable with --shard K/N."),
+    "compare": (compare_flags, compare, "time and score deferred shading against path-traced references",
+                "Render, time and score path tracing at a ladder of spp and R_diff / R_BP on ground-truth maps (and "
+                "NGP on generated maps) against a high-spp path-traced reference; write images, a speed-accuracy "
+                "plot, results.json and report.html."),
+    "train": (train_flags, train, "train a stage of NGP from a recipe (train/*.toml); resumes automatically",
+              "Train the shape prior (stage 'shape': IM-NET autoencoder + latent WGAN-GP) or the map networks (stage "
+              "'maps') from a TOML recipe, with values overridden by --set; logs, metrics, image grids and "
+              "checkpoints go to --out or the recipe's [train] out. Maps: multi-process with torchrun."),
+    "sample-shapes": (sample_shapes_flags, sample_shapes,
+                      "meshes and a rendered contact sheet from a trained shape prior",
+                      "Sample z_s, extract meshes (coarse-to-fine marching cubes), write OBJ/PLY, sheet.png, "
+                      "samples.json and report.md; or interpolate between two seeds."),
+    "generate": (generate_flags, generate, "NGP images: shapes from G_shape (or a mesh), maps, lights, G_sp^real",
+                 "Form NGP images (paper Sec. 3): sample shapes with G_shape (or take --mesh), project them with "
+                 "Mitsuba from the given views, generate normals and albedo, shade under the lights and blend the "
+                 "realistic specular map. Writes images/, sheet.png (every intermediate map), generate.json and "
+                 "report.md."),
+    "evaluate": (evaluate_flags, evaluate, "evaluate trained map networks on held-out maps (normal error, albedo)",
+                 "Normal angular error of G_n from a coarse depth against normals from the same depth (NGP w/o G_n); "
+                 "E_da -> G_da albedo reconstruction and diversity."),
+}
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser; only ``command``'s flags are declared (see the module docstring)."""
+    parser = argparse.ArgumentParser(prog="ngp-mi",
+                                     description="Neural Graphics Pipeline on Mitsuba 3 / Dr.Jit and PyTorch.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands")
-
-    doctor = sub.add_parser("doctor", help="print versions, backend and a timed test render; exit 0 if rendering works",
-                            description="Print versions, the Mitsuba variant, libLLVM and a timed test render.")
-    doctor.set_defaults(func=_doctor)
-
-    demo = sub.add_parser("demo", help="render the showcase contact sheets under outputs/demo",
-                          description="Path trace a procedural chair from the paper's view distribution "
-                                      "under the 4-light overhead rig, and 16 samples of each shape family.")
-    demo.add_argument("--out", default="outputs/demo", help="output folder (default: %(default)s)")
-    demo.add_argument("--res", type=int, default=128, help="image size in pixels (default: %(default)s)")
-    demo.add_argument("--views", type=int, default=12, help="number of sampled views (default: %(default)s)")
-    demo.add_argument("--spp", type=int, default=64, help="samples per pixel (default: %(default)s)")
-    demo.add_argument("--seed", type=int, default=0, help="random seed for views and noise (default: %(default)s)")
-    demo.set_defaults(func=_demo)
-
-    families = sub.add_parser("families", help="contact sheet of samples of a procedural shape family",
-                              description="Path trace consecutive seeds of a procedural family (chair, car) "
-                                          "with their part materials into one contact sheet.")
-    families.add_argument("family", choices=["chair", "car"], help="shape family")
-    families.add_argument("--count", type=int, default=16, help="number of samples (default: %(default)s)")
-    families.add_argument("--seed", type=int, default=0, help="first seed (default: %(default)s)")
-    families.add_argument("--res", type=int, default=128, help="image size (default: %(default)s)")
-    families.add_argument("--spp", type=int, default=32, help="samples per pixel (default: %(default)s)")
-    families.add_argument("--out", help="PNG path (default: outputs/families/FAMILY.png)")
-    families.set_defaults(func=_families)
-
-    data = sub.add_parser("render-dataset", help="render reference maps (EXR) and path-traced images of many shapes",
-                          description="Render G-buffer maps (depth, normal, albedo, NOC, mask) and optionally "
-                                      "path-traced 'real' images for shapes x sampled views, with a manifest. "
-                                      "Resumable; shardable with --shard K/N.")
-    data.add_argument("--source", required=True, help="chair | car | a mesh folder / ShapeNet tree / mesh file | "
-                                                      "a Mitsuba scene .xml (or a folder of them)")
-    data.add_argument("--out", required=True, help="output folder")
-    data.add_argument("--num-shapes", type=int, default=16, help="shapes to take from the source (default: %(default)s)")
-    data.add_argument("--views", type=int, default=8, help="views per shape (default: %(default)s)")
-    data.add_argument("--res", type=int, default=128, help="image size in pixels (default: %(default)s)")
-    data.add_argument("--channels", default="depth,normal,albedo,noc,mask",
-                      help="G-buffer channels to write (default: %(default)s)")
-    data.add_argument("--real-spp", type=int, default=0, help="samples per pixel of the path-traced 'real' image; "
-                                                              "0 = none (default: %(default)s)")
-    data.add_argument("--lights", default="rig", choices=["rig", "random", "scene"],
-                      help="lights of the real images: the 4-light rig, random, or the scene file's own")
-    data.add_argument("--shard", default="0/1", help="K/N: render every N-th shape starting at K (default: 0/1)")
-    data.add_argument("--seed", type=int, default=0, help="seed of shapes, views and noise (default: %(default)s)")
-    data.add_argument("--compression", default="rle", choices=["rle", "zip", "zstd", "piz", "none"],
-                      help="EXR compression, all lossless (default: %(default)s, the fastest to write; zip: ~2x "
-                           "smaller); may differ between runs that fill one folder")
-    data.add_argument("--full-window", action="store_true", help="store every pixel of the maps, not only the "
-                      "object's bounding rectangle (the EXR data window; readers see zeros outside it either way)")
-    data.add_argument("--half", action="store_true", help="store all channels but depth as 16-bit floats "
-                                                          "(half the size)")
-    data.add_argument("--workers", type=int, default=0, help="processes splitting this shard's shapes "
-                      "(default: one per core, at most 8; 1 on a GPU)")
-    data.add_argument("--coarse-shapes", metavar="RUN", help="a `train shape` run: render each shape as its "
-                      "autoencoder reconstructs it (NGP's coarse shapes; ids and views pair with the detailed ones)")
-    data.add_argument("--coarse-resolution", type=int, default=64, help="marching-cubes grid of --coarse-shapes "
-                                                                        "(default: %(default)s)")
-    data.add_argument("--strict", action="store_true", help="exit non-zero if any shape was skipped")
-    data.add_argument("--quiet", action="store_true", help="no progress bar")
-    data.set_defaults(func=_render_dataset)
-
-    compare = sub.add_parser("compare", help="time and score deferred shading against path-traced references",
-                             description="Render, time and score path tracing at a ladder of spp and R_diff / R_BP "
-                                         "on ground-truth maps (and NGP on generated maps) against a high-spp "
-                                         "path-traced reference; write "
-                                         "images, a speed-accuracy plot, results.json and report.html.")
-    compare.add_argument("--source", default="chair", help="chair | car | mesh folder / file | scene .xml")
-    compare.add_argument("--out", required=True, help="output folder")
-    compare.add_argument("--num-shapes", type=int, default=3, help="shapes (default: %(default)s)")
-    compare.add_argument("--views", type=int, default=2, help="views per shape (default: %(default)s)")
-    compare.add_argument("--res", type=int, default=128, help="image size (default: %(default)s)")
-    compare.add_argument("--lights", default="rig,random", help="light setups, from rig,random,rig+random (the rig plus added lights: "
-                                                      "NGP-plus) (default: %(default)s)")
-    compare.add_argument("--spp-ladder", default="1,4,16,64,256", help="path-tracing spp to compare (default: %(default)s)")
-    compare.add_argument("--reference-spp", type=int, default=1024, help="spp of the reference (default: %(default)s)")
-    compare.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
-    compare.add_argument("--maps-checkpoint", help="a `train maps` run folder: adds NGP-BP, NGP, NGP-plus and "
-                                                   "the ablations on generated maps")
-    compare.add_argument("--inception-weights", help="local inception-2015-12-05.pt (TorchScript): adds FID / KID; "
-                                                     "never downloaded")
-    compare.set_defaults(func=_compare)
-
-    train = sub.add_parser("train", help="train a stage of NGP from a config (train/*.toml); resumes automatically",
-                           description="Train the shape prior (stage 'shape': IM-NET autoencoder + latent WGAN-GP) "
-                                       "or the map networks (stage 'maps') from a TOML config; logs, metrics, image "
-                                       "grids and checkpoints go to the config's [train].out. Maps: multi-process "
-                                       "with torchrun.")
-    train.add_argument("stage", choices=["shape", "maps"], help="what to train")
-    train.add_argument("--config", required=True, help="TOML config, e.g. train/maps_tiny.toml")
-    train.set_defaults(func=_train)
-
-    sample = sub.add_parser("sample-shapes", help="meshes and a rendered contact sheet from a trained shape prior",
-                            description="Sample z_s, extract meshes (coarse-to-fine marching cubes), write OBJ/PLY, "
-                                        "sheet.png, samples.json and report.md; or interpolate between two seeds.")
-    sample.add_argument("--run", required=True, help="a `train shape` output folder (with ckpt-*)")
-    sample.add_argument("--out", required=True, help="output folder")
-    sample.add_argument("--num", type=int, default=16, help="number of shapes (default: %(default)s)")
-    sample.add_argument("--seed", type=int, default=0, help="latent seed of the first shape (default: %(default)s)")
-    sample.add_argument("--resolution", type=int, default=128, help="marching-cubes grid (default: %(default)s)")
-    sample.add_argument("--coarse", type=int, default=32, help="coarse grid of the coarse-to-fine pass (default: %(default)s)")
-    sample.add_argument("--format", choices=["obj", "ply"], default="obj", help="mesh format (default: %(default)s)")
-    sample.add_argument("--interpolate", type=int, nargs=2, metavar=("SEED_A", "SEED_B"),
-                        help="interpolate (slerp) between the latents of two seeds instead")
-    sample.add_argument("--steps", type=int, default=8, help="interpolation steps (default: %(default)s)")
-    sample.add_argument("--spp", type=int, default=16, help="samples per pixel of the previews (default: %(default)s)")
-    sample.set_defaults(func=_sample_shapes)
-
-    gen = sub.add_parser("generate", help="NGP images: shapes from G_shape (or a mesh), maps, lights, G_sp^real",
-                         description="Form NGP images (paper Sec. 3): sample shapes with G_shape (or take --mesh), "
-                                     "project them with Mitsuba from the given views, generate normals and albedo, "
-                                     "shade under the lights and blend the realistic specular map. Writes images/, "
-                                     "sheet.png (every intermediate map), generate.json and report.md.")
-    gen.add_argument("--maps-run", required=True, help="a `train maps` output folder (with the [specular] stage for "
-                                                       "ngp / ngp-plus)")
-    gen.add_argument("--shape-run", help="a `train shape` output folder (shapes from z_s)")
-    gen.add_argument("--mesh", help="a user mesh instead of sampled shapes")
-    gen.add_argument("--out", required=True, help="output folder")
-    gen.add_argument("--num", type=int, default=4, help="shapes to sample (default: %(default)s)")
-    gen.add_argument("--seed", type=int, default=0, help="seed of z_s and z_da of the first shape (default: %(default)s)")
-    gen.add_argument("--views", default="10,-30;10,30", help="camera views 'THETA,PHI;…' in degrees (default: %(default)s)")
-    gen.add_argument("--res", type=int, default=128, help="image size (default: %(default)s)")
-    gen.add_argument("--lights", default="rig", help="'rig' (the 4 overhead lights) or a lights JSON file")
-    gen.add_argument("--add-lights", help="a lights JSON file of lights added by R_BP (variant ngp-plus)")
-    gen.add_argument("--variant", default="ngp", choices=["ngp", "ngp-bp", "ngp-plus", "no-sp", "no-gn", "no-gda"],
-                     help="NGP variant or ablation (default: %(default)s)")
-    gen.add_argument("--exemplar", help="an albedo image: its appearance code (E_da) instead of a sampled z_da")
-    gen.set_defaults(func=_generate)
-
-    evaluate = sub.add_parser("evaluate", help="evaluate trained map networks on held-out maps (normal error, albedo)",
-                              description="Normal angular error of G_n from a coarse depth against normals from the "
-                                          "same depth (NGP w/o G_n); E_da -> G_da albedo reconstruction and diversity.")
-    evaluate.add_argument("stage", choices=["maps"], help="what to evaluate")
-    evaluate.add_argument("--run", required=True, help="training output folder (with ckpt-*)")
-    evaluate.add_argument("--data", required=True, help="held-out render-dataset folder")
-    evaluate.add_argument("--out", help="output folder (default: RUN/eval)")
-    evaluate.add_argument("--coarse-sigma", type=float, default=2.0, help="smoothing of the coarse depth, px "
-                                                                          "(without --coarse-data)")
-    evaluate.add_argument("--coarse-data", help="the same shapes and views rendered with `render-dataset "
-                                                "--coarse-shapes SHAPE_RUN`: coarse depth from the shape autoencoder")
-    evaluate.set_defaults(func=_evaluate)
+    for name, (flags, run, help_text, description) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=description)
+        if name == command:
+            flags(p)
+        p.set_defaults(func=run)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(next((a for a in argv if a in COMMANDS), None))
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()

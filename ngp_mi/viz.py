@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 from PIL import Image, ImageDraw
+
+from ngp_mi.atomic import atomic_path
 
 
 def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
@@ -26,15 +26,8 @@ def to_uint8(image: np.ndarray, srgb: bool = True) -> np.ndarray:
 def save_png(path: str | Path, image: np.ndarray) -> Path:
     """Write a uint8 (H, W[, C]) image as PNG, via a temporary file and a rename."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         Image.fromarray(image).save(tmp, format="PNG")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return path
 
 

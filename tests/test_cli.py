@@ -3,9 +3,8 @@ import subprocess
 import sys
 
 import numpy as np
+from ngp_mi.commands.demo import run_demo
 from PIL import Image
-
-from ngp_mi.demo import run_demo
 
 
 def _cli(*args):

@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 import torch
 
-import ngp_mi.render.direct_unshadowed  # noqa: F401
 from ngp_mi.camera import Camera
 from ngp_mi.eval.compare import CompareConfig, run_compare
 from ngp_mi.eval.metrics import psnr
@@ -49,9 +48,8 @@ def test_r_diff_over_pi_equals_unshadowed_lambertian_radiance():
 
 
 def test_compare_with_trained_map_networks_and_fid(tmp_path):
+    from ngp_mi.training.maps import train_maps
     from test_train_maps import config as train_config
-
-    from ngp_mi.train_maps import train_maps
 
     run = train_maps(train_config(tmp_path, "run", iterations=2), log=lambda *_: None)  # maps + specular stage
     weights = tmp_path / "inception-2015-12-05.pt"

@@ -7,6 +7,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 from helpers import compiled_kernels, rss_mib, trimesh_depth
+
 from ngp_mi import backend
 from ngp_mi.camera import Camera
 from ngp_mi.geometry.primitives import box, simple_chair
@@ -136,8 +137,7 @@ def test_silhouette_derivative_lands_in_the_right_pixels():
     A boundary term splatted one pixel off would give an error near 100 %.
     """
     mi, dr = backend.mitsuba(), backend.drjit()
-    from ngp_mi.render.depth import projector_for
-    from ngp_mi.render.depth_projective import _renderer
+    from ngp_mi.render.depth import projector_for, silhouette_renderer
     from ngp_mi.render.scene import set_sensor_camera
 
     mesh = box((0.05, 0.02, 0.0), (0.5, 0.4, 0.45))
@@ -153,7 +153,7 @@ def test_silhouette_derivative_lands_in_the_right_pixels():
         fd += np.stack([(p - m)[0, 0].numpy() for p, m in zip(plus, minus)]) / (2 * h * PHASES)
 
     projector = projector_for(mesh.faces, len(mesh.vertices))
-    renderer = _renderer(cam, 4096)
+    renderer = silhouette_renderer(cam, 4096)
     set_sensor_camera(renderer.sensor, cam)
     renderer.integrator.set_camera(cam)
     s = mi.Float(0.0)

@@ -4,7 +4,6 @@ import math
 
 import numpy as np
 
-import ngp_mi.render.direct_unshadowed  # noqa: F401  (registers the integrator)
 from ngp_mi.camera import Camera
 from ngp_mi.lights import DirectionalLight
 from ngp_mi.render.scene import build_scene, diffuse_bsdf, render

@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 import torch
-
 from helpers import analytic_sphere, compiled_kernels, trimesh_depth
+
 from ngp_mi.camera import Camera, ViewDistribution
 from ngp_mi.geometry.primitives import box, simple_chair
 from ngp_mi.render.depth import project_depth
+from ngp_mi.render.from_depth import noc_from_depth, normals_from_depth
 from ngp_mi.render.gbuffer import GBufferRenderer
-from ngp_mi.render.maps import noc_from_depth, normals_from_depth
 from ngp_mi.render.scene import diffuse_bsdf, mesh_parts_to_mitsuba
 
 

@@ -4,8 +4,16 @@ import numpy as np
 import pytest
 
 from ngp_mi.camera import Camera
-from ngp_mi.lights import (DirectionalLight, PointLight, light_from_dict, lights_from_json, lights_to_json,
-                           load_lights, overhead_rig, save_lights)
+from ngp_mi.lights import (
+    DirectionalLight,
+    PointLight,
+    light_from_dict,
+    lights_from_json,
+    lights_to_json,
+    load_lights,
+    overhead_rig,
+    save_lights,
+)
 from ngp_mi.render.scene import build_scene, diffuse_bsdf, render
 
 

@@ -5,7 +5,7 @@ import torch
 
 from ngp_mi.camera import Camera
 from ngp_mi.eval.maps_eval import angular_error_deg, evaluate_maps, smooth_depth
-from ngp_mi.render.maps import normals_from_depth
+from ngp_mi.render.from_depth import normals_from_depth
 
 
 def test_angular_error_known_angles():
@@ -33,9 +33,8 @@ def test_smoothing_keeps_background_and_planes():
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
+    from ngp_mi.training.maps import train_maps
     from test_train_maps import config
-
-    from ngp_mi.train_maps import train_maps
 
     tmp = tmp_path_factory.mktemp("eval")
     return train_maps(config(tmp, "run", iterations=3), log=lambda *_: None), tmp / "data"

@@ -1,8 +1,7 @@
 import numpy as np
 import pytest
 
-from ngp_mi.eval.metrics import (fid_from_features, flip, frechet_distance, kernel_inception_distance, psnr,
-                                 ssim)
+from ngp_mi.eval.metrics import fid_from_features, flip, frechet_distance, kernel_inception_distance, psnr, ssim
 
 
 def test_psnr_known_values_and_mask():

@@ -9,8 +9,14 @@ import trimesh
 from ngp_mi.data.shapes import ShapeDataConfig, ShapeDataset, build_shape_dataset
 from ngp_mi.geometry.families import generate
 from ngp_mi.geometry.mesh import TriangleMesh
-from ngp_mi.geometry.occupancy import (boundary_cells, grid_points, mesh_occupancy_grid, sample_occupancy_points,
-                                       voxel_iou, winding_numbers)
+from ngp_mi.geometry.occupancy import (
+    boundary_cells,
+    grid_points,
+    mesh_occupancy_grid,
+    sample_occupancy_points,
+    voxel_iou,
+    winding_numbers,
+)
 
 
 def sphere(radius=0.3, subdivisions=3):

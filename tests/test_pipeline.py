@@ -16,11 +16,10 @@ from ngp_mi.pipeline import NGP, ngp_image
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
+    from ngp_mi.training.maps import train_maps
+    from ngp_mi.training.shape import train_shape
     from test_shape import tiny_config
     from test_train_maps import config
-
-    from ngp_mi.train_maps import train_maps
-    from ngp_mi.train_shape import train_shape
 
     maps_tmp, shape_tmp = tmp_path_factory.mktemp("maps"), tmp_path_factory.mktemp("shape")
     return train_maps(config(maps_tmp, "maps", iterations=2), log=lambda *_: None), train_shape(

@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 import torch
-
 from helpers import analytic_sphere, compiled_kernels, rss_mib
+
 from ngp_mi.camera import Camera
 from ngp_mi.lights import DirectionalLight, PointLight, overhead_rig
 from ngp_mi.render.scene import build_scene, diffuse_bsdf, render
@@ -290,21 +290,21 @@ def test_shared_lights_gradients_agree():
 @pytest.mark.parametrize("freeze", [True, False])
 @pytest.mark.parametrize("width", [5, 6, 8])  # 1, 2 and 4 pixels per kernel lane
 def test_every_row_width_agrees_with_torch(width, freeze, monkeypatch):
-    from ngp_mi.render import shading
+    from ngp_mi.render.shading import drjit_op
 
-    monkeypatch.setattr(shading, "FREEZE", freeze)
+    monkeypatch.setattr(drjit_op, "FREEZE", freeze)
     assert_backends_agree(n=2, h=3, w=width, seed=width)
 
 
 def test_replayed_kernels_give_new_inputs_right_values_and_gradients():
     """The Dr.Jit op records its kernels once per layout (``dr.freeze``); later calls replay them with
     the new arrays. Each call must see its own inputs, and replaying must trace and compile nothing."""
-    from ngp_mi.render import shading
+    from ngp_mi.render.shading import drjit_op
 
     shape = {"n": 2, "h": 4, "w": 8}
     value_and_grads("drjit", seed=100, **shape)  # records; so does the call below: Dr.Jit's flags are in the key
     compiled_kernels(lambda: value_and_grads("drjit", seed=101, **shape))
-    frozen = [shading._FROZEN[name] for name in ("_shade_forward", "_shade_backward")]
+    frozen = [drjit_op.RECORDINGS[name] for name in ("_shade_forward", "_shade_backward")]
     recordings = [f.n_recordings for f in frozen]
     for seed in (1, 2, 3):
         launched, compiled = compiled_kernels(lambda: value_and_grads("drjit", seed=seed, **shape))

@@ -7,16 +7,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from ngp_mi.models.checkpoint import list_checkpoints
+from ngp_mi.training.shape import ShapeRecipe, train_shape
 from safetensors.torch import load_file
 
-from ngp_mi.checkpoint import list_checkpoints
 from ngp_mi.cli import main
 from ngp_mi.eval.shape_metrics import chamfer_distance, chamfer_matrix, coverage_mmd
 from ngp_mi.geometry.extract import attach_iso_surface_gradient, extract_mesh
 from ngp_mi.geometry.families import generate
-from ngp_mi.models.shape import ShapeConfig, ShapeModel, critic_loss, gradient_penalty
+from ngp_mi.models.shape import CoarseShapes, ShapeConfig, ShapeModel, critic_loss, gradient_penalty
 from ngp_mi.nets.imnet import ImplicitDecoder, LatentCritic, LatentGenerator, VoxelEncoder, leaky_clamp
-from ngp_mi.train_shape import load_shape_model, train_shape
 
 TINY = Path(__file__).resolve().parent.parent / "train" / "shape_tiny.toml"
 
@@ -136,7 +136,7 @@ def test_trained_decoder_gradient_wrt_z_and_weights_matches_reextraction(tiny_ru
     tiny decoder's soft field makes marching cubes' linear edge interpolation the larger error —
     the finite differences themselves move from 0.0163 to 0.0149 between 64³ and 128³).
     """
-    model = load_shape_model(tiny_run[0]).double()
+    model = ShapeModel.from_run(tiny_run[0]).double()
 
     def reextracted(z, resolution):
         mesh = model.shape(z, resolution).mesh
@@ -172,7 +172,7 @@ def test_a_depth_loss_reaches_z_and_the_decoder_through_mitsuba(tiny_run):
     from ngp_mi.camera import Camera
     from ngp_mi.render.depth import project_depth
 
-    model = load_shape_model(tiny_run[0])
+    model = ShapeModel.from_run(tiny_run[0])
     z = torch.randn(model.config.z_dim, generator=torch.Generator().manual_seed(0)).requires_grad_(True)
     vertices, faces = model.differentiable_surface(z, 32)
     maps = project_depth(vertices, faces, Camera.orbit(20.0, 45.0, 32))
@@ -253,11 +253,9 @@ def test_shape_model_step_changes_only_its_own_networks():
 
 @pytest.mark.parametrize("preset", ["tiny", "cpu", "paper"])
 def test_every_preset_config_loads_and_builds(preset):
-    from ngp_mi.train_shape import data_config, load_config, model_config
-
-    config = load_config(TINY.with_name(f"shape_{preset}.toml"))
-    data = data_config(config["data"])
-    model = ShapeModel(model_config(config["model"], data))
+    recipe = ShapeRecipe.read(TINY.with_name(f"shape_{preset}.toml"))
+    data = recipe.data
+    model = ShapeModel(recipe.model)
     assert model.encoder(torch.zeros(1, 1, *(data.voxel_resolution,) * 3)).shape == (1, model.config.code_dim)
 
 
@@ -270,7 +268,7 @@ def test_render_dataset_of_autoencoded_shapes_pairs_with_the_detailed_views(tiny
     config = DatasetConfig(source="chair", num_shapes=2, views=2, resolution=32, channels=("depth", "mask"))
     render_dataset(config, tmp_path / "detailed", progress=False)
     summary = render_dataset(dataclasses.replace(config, coarse_shapes=str(run), coarse_resolution=32),
-                             tmp_path / "coarse", progress=False)
+                             tmp_path / "coarse", progress=False, reconstruct=CoarseShapes(run, 32))
     detailed, coarse = ReflectanceMapDataset(tmp_path / "detailed"), ReflectanceMapDataset(tmp_path / "coarse")
     rendered = {(r["shape_id"], r["view"]) for r in coarse.records}
     assert len(rendered) + 2 * len(summary["skipped_shapes"]) == 4
@@ -284,4 +282,4 @@ def test_render_dataset_of_autoencoded_shapes_pairs_with_the_detailed_views(tiny
         assert b["mask"].sum() > 0 and not torch.equal(a["depth"], b["depth"])
     with pytest.raises(ValueError, match="not a scene file"):
         render_dataset(dataclasses.replace(config, source="scenes/table_lamp.xml", coarse_shapes=str(run)), tmp_path / "s",
-                       progress=False)
+                       progress=False, reconstruct=CoarseShapes(run))

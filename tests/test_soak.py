@@ -1,8 +1,8 @@
 """Long-running checks, marked slow (``make test-slow``)."""
 
 import pytest
-
 from helpers import rss_mib
+
 from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
 
 

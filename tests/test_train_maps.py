@@ -8,10 +8,9 @@ from pathlib import Path
 
 import pytest
 import torch
+from ngp_mi.models.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint
+from ngp_mi.training.maps import train_maps
 from safetensors.torch import load_file
-
-from ngp_mi.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint
-from ngp_mi.train_maps import train_maps
 
 TINY = Path(__file__).resolve().parent.parent / "train" / "maps_tiny.toml"
 

@@ -17,10 +17,12 @@ from typing import Any, Sequence
 
 import numpy as np
 import torch
+from PIL import Image
 from torch.utils.data import Dataset
 
 from ngp_mi.data.exr import read_exr
 from ngp_mi.data.manifest import load_manifest
+from ngp_mi.viz import linear_to_srgb
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
 
@@ -67,10 +69,6 @@ def read_image(path: Path, size: int | None = None, linear: bool = False) -> np.
     """(H, W, 3) float32 of an image file. PNG / JPEG are sRGB (resized to ``size``² when given)
     and returned as such unless ``linear``; EXR (an ``rgb`` layer) is linear and returned as such
     unless ``linear=False`` (resize it with the caller's tensor ops)."""
-    from PIL import Image
-
-    from ngp_mi.viz import linear_to_srgb
-
     path = Path(path)
     if path.suffix.lower() == ".exr":
         channels = read_exr(path)

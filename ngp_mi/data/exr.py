@@ -12,13 +12,13 @@ the object. :func:`read_exr` returns display-window arrays with zeros outside th
 
 from __future__ import annotations
 
-import os
-import threading
 from pathlib import Path
 from typing import Iterable, Mapping
 
 import numpy as np
 import OpenEXR
+
+from ngp_mi.atomic import atomic_path
 
 COMPRESSIONS = {
     "none": OpenEXR.NO_COMPRESSION,
@@ -80,15 +80,8 @@ def write_exr(path: str | Path, channels: Mapping[str, np.ndarray], compression:
         header["displayWindow"] = (np.array([0, 0], np.int32), np.array([shape[1] - 1, shape[0] - 1], np.int32))
         header["dataWindow"] = (np.array([x0, y0], np.int32), np.array([x1, y1], np.int32))
     header.update({str(k): str(v) for k, v in (metadata or {}).items()})
-    path.parent.mkdir(parents=True, exist_ok=True)
-    # a temporary name no other process or thread uses (cheaper than mkstemp's create + close)
-    tmp = str(path.with_name(f".{path.name}.{os.getpid()}-{threading.get_ident()}.tmp"))
-    try:
-        OpenEXR.File(header, data).write(tmp)  # OpenEXR replaces the dict's values: pass our copy
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    with atomic_path(path) as tmp:
+        OpenEXR.File(header, data).write(str(tmp))  # OpenEXR replaces the dict's values: pass our copy
     return path
 
 

@@ -31,32 +31,30 @@ import dataclasses
 import functools
 import json
 import logging
-import multiprocessing
 import os
 import platform
-import queue
-import tempfile
 import time
 from pathlib import Path
 from typing import Any, Iterator, Sequence
 
-import numpy as np
+from tqdm import tqdm
 
 from ngp_mi import __version__, backend
+from ngp_mi.atomic import write_json
 from ngp_mi.camera import Camera, ViewDistribution
 from ngp_mi.data.exr import COMPRESSIONS, nonzero_windows, write_exr
 from ngp_mi.data.manifest import BackgroundWriter, ManifestWriter, load_manifest, manifest_records
-from ngp_mi.data.sources import SourceItem, autoencoded_items, resolve_source
-from ngp_mi.lights import DirectionalLight, Light, overhead_rig
+from ngp_mi.data.sources import Reconstruct, SourceItem, autoencoded_items, resolve_source
+from ngp_mi.data.views import LIGHT_MODES, derived_seed, view_cameras, view_lights
+from ngp_mi.data.workers import BarProgress, run_workers
+from ngp_mi.lights import Light
 from ngp_mi.render.gbuffer import CHANNELS, GBufferRenderer
 from ngp_mi.render.scene import build_scene, lights_to_mitsuba, render, set_sensor_camera
 from ngp_mi.viz import save_png, to_uint8
 
 log = logging.getLogger("ngp_mi.render_dataset")
-LIGHT_MODES = ("rig", "random", "scene")
 STORAGE_SETTINGS = ("compression", "full_window")  # how maps are stored, not what they hold: may change on resume
-__all__ = ["DatasetConfig", "default_workers", "derived_seed", "load_manifest", "parse_shard", "render_dataset",
-           "view_cameras", "view_lights"]
+__all__ = ["DatasetConfig", "default_workers", "load_manifest", "parse_shard", "render_dataset"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,6 +93,14 @@ class DatasetConfig:
         data["channels"] = list(self.channels)
         return data
 
+    def cameras(self, shape_index: int) -> list[Camera]:
+        """The views of shape ``shape_index``: seeded by (seed, shape index), independent of sharding."""
+        return view_cameras(self.views, self.resolution, self.seed, shape_index, self.view_distribution)
+
+    def view_lights(self, shape_index: int, view: int) -> list[Light]:
+        """The lights of one view's real image: the overhead rig or random lights (``scene``: none)."""
+        return [] if self.lights == "scene" else view_lights(self.lights, self.seed, shape_index, view)
+
 
 def parse_shard(text: str) -> tuple[int, int]:
     """``"k/n"`` → (k, n) with 0 <= k < n."""
@@ -111,35 +117,6 @@ def _shard_suffix(shard: tuple[int, int]) -> str:
     return "" if shard == (0, 1) else f".shard-{shard[0]}-of-{shard[1]}"
 
 
-def derived_seed(*keys: int) -> int:
-    """A 32-bit seed from integer keys (``numpy.random.SeedSequence``): stable across runs and shards."""
-    return int(np.random.SeedSequence([int(k) for k in keys]).generate_state(1)[0])
-
-
-def view_cameras(config: DatasetConfig, shape_index: int) -> list[Camera]:
-    """The views of shape ``shape_index``: seeded by (seed, shape index), independent of sharding."""
-    return config.view_distribution.sample(config.views, seed=derived_seed(config.seed, shape_index),
-                                           resolution=config.resolution)
-
-
-@functools.lru_cache(maxsize=1)
-def _rig() -> tuple[Light, ...]:
-    return tuple(overhead_rig())  # the same for every view: built once (~10 % of a view's time in a profile)
-
-
-def view_lights(config: DatasetConfig, shape_index: int, view: int) -> list[Light]:
-    """Lights of one view: the overhead rig, or 1–4 random white-ish directional lights."""
-    if config.lights != "random":
-        return list(_rig())
-    rng = np.random.default_rng([config.seed, shape_index, view, 7])
-    lights = []
-    for _ in range(int(rng.integers(1, 5))):
-        el, az = np.radians(rng.uniform(15, 85)), rng.uniform(0, 2 * np.pi)
-        colour = rng.uniform(0.8, 1.0, 3) * rng.uniform(0.3, 1.5)
-        lights.append(DirectionalLight((np.cos(el) * np.sin(az), np.sin(el), np.cos(el) * np.cos(az)), tuple(colour)))
-    return lights
-
-
 def _check_settings(out: Path, config: DatasetConfig) -> None:
     settings = out / "dataset.json"
     current = config.to_json()
@@ -153,12 +130,7 @@ def _check_settings(out: Path, config: DatasetConfig) -> None:
             raise ValueError(f"{settings}: this folder was rendered with other settings ({', '.join(sorted(changed))}); "
                              "use a new --out or the same settings to resume")
     else:  # a temporary name of its own: shards started together must not share one
-        fd, tmp = tempfile.mkstemp(prefix=".dataset.", suffix=".json", dir=out)
-        with os.fdopen(fd, "w") as f:
-            f.write(json.dumps(current, indent=1) + "\n")
-        os.replace(tmp, settings)
-
-
+        write_json(settings, current)
 
 
 def default_workers() -> int:
@@ -182,19 +154,23 @@ def _logging_to(out: Path) -> Iterator[None]:
 
 
 def render_dataset(config: DatasetConfig, out: str | Path, shard: tuple[int, int] = (0, 1),
-                   strict: bool = False, progress: bool = True, workers: int = 1) -> dict[str, Any]:
+                   strict: bool = False, progress: bool = True, workers: int = 1,
+                   reconstruct: Reconstruct | None = None) -> dict[str, Any]:
     """Render (or finish rendering) this shard of the dataset; returns the summary.
 
-    ``workers`` > 1 starts that many processes, worker j taking shard ``(K + N·j) / (N·workers)``
-    of the whole (so the shard is split like ``--shard`` splits the dataset); their progress,
-    skipped shapes and failures come back to this process, which writes the shard's summary.
+    ``workers`` > 1 starts that many processes (:mod:`ngp_mi.data.workers`), worker j taking shard
+    ``(K + N·j) / (N·workers)`` of the whole (so the shard is split like ``--shard`` splits the
+    dataset); their progress, skipped shapes and failures come back to this process, which writes
+    the shard's summary. ``config.coarse_shapes`` needs ``reconstruct``, the coarse version of a
+    shape (:class:`ngp_mi.models.shape.CoarseShapes` of that run; this layer loads no model).
     """
-    from tqdm import tqdm
-
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     if workers < 1:
         raise ValueError(f"--workers must be >= 1, got {workers}")
+    if (config.coarse_shapes is None) != (reconstruct is None):
+        raise ValueError("coarse_shapes and reconstruct go together: pass reconstruct=CoarseShapes(run, resolution) "
+                         "(ngp_mi.models.shape) with a config's coarse_shapes, and neither without")
+    out.mkdir(parents=True, exist_ok=True)
     with _logging_to(out):
         _check_settings(out, config)
         suffix = _shard_suffix(shard)
@@ -202,16 +178,15 @@ def render_dataset(config: DatasetConfig, out: str | Path, shard: tuple[int, int
         start = time.perf_counter()
         try:
             if workers == 1:
-                summary = _render_part(config, out, shard, _BarProgress(bar))
+                summary = _render_part(config, out, shard, reconstruct, BarProgress(bar))
             else:
-                summary = _run_workers(config, out, shard, workers, bar)
+                summary = _run_workers(config, out, shard, reconstruct, workers, bar)
         finally:
             bar.close()
         elapsed = time.perf_counter() - start
         summary.update(shard=list(shard), workers=workers, seconds=round(elapsed, 3),
                        views_per_second=round(summary["views_rendered"] / elapsed, 3) if elapsed > 0 else None)
-        summary_path = out / f"summary{suffix}.json"
-        summary_path.write_text(json.dumps(summary, indent=1) + "\n")
+        summary_path = write_json(out / f"summary{suffix}.json", summary)
         log.info("done: %d views rendered, %d already present, %d shapes skipped (%s)", summary["views_rendered"],
                  summary["views_before"], len(summary["skipped_shapes"]), summary_path)
         if summary.get("failed_workers"):
@@ -222,85 +197,19 @@ def render_dataset(config: DatasetConfig, out: str | Path, shard: tuple[int, int
         return summary
 
 
-class _BarProgress:
-    """Progress of :func:`_render_part` in this process: ``start`` (totals) and ``update`` (views done)."""
-
-    def __init__(self, bar: Any):
-        self.bar = bar
-
-    def start(self, total: int, before: int) -> None:
-        self.bar.total = total
-        self.bar.update(before)
-
-    def update(self, views: int) -> None:
-        self.bar.update(views)
-
-
-class _Progress:
-    """The same reports from a worker, sent to :func:`_run_workers`."""
-
-    def __init__(self, messages: Any, worker: int):
-        self.messages, self.worker = messages, worker
-
-    def start(self, total: int, before: int) -> None:
-        self.messages.put(("start", self.worker, (total, before)))
-
-    def update(self, views: int) -> None:
-        self.messages.put(("views", self.worker, views))
-
-
-def _worker_main(config: DatasetConfig, out: Path, shard: tuple[int, int], worker: int, messages: Any) -> None:
+def _worker(config: DatasetConfig, out: Path, shard: tuple[int, int], reconstruct: Reconstruct | None, workers: int,
+            worker: int, progress: Any) -> dict[str, Any]:
+    """Worker ``worker`` of ``workers``: shard (K + N·worker) / (N·workers), Dr.Jit on one thread."""
     backend.load(threads=1)  # this process is one of the job's cores
-    try:
-        with _logging_to(out):
-            summary = _render_part(config, out, shard, _Progress(messages, worker))
-        messages.put(("done", worker, summary))
-    except BaseException as exc:
-        messages.put(("failed", worker, f"{type(exc).__name__}: {exc}"))
-        raise
-
-
-def _run_workers(config: DatasetConfig, out: Path, shard: tuple[int, int], workers: int, bar: Any) -> dict[str, Any]:
     k, n = shard
-    context = multiprocessing.get_context("spawn")  # a fresh interpreter: no forked JIT or thread state
-    messages = context.Queue()
-    processes = [context.Process(target=_worker_main, args=(config, out, (k + n * j, n * workers), j, messages),
-                                 name=f"render-dataset-worker-{j}", daemon=True) for j in range(workers)]
-    for process in processes:
-        process.start()
-    totals: dict[int, tuple[int, int]] = {}
-    results: dict[int, dict[str, Any]] = {}
-    failures: dict[int, str] = {}
-    silent_exit: set[int] = set()
-    try:
-        while len(results) + len(failures) < workers:
-            try:
-                kind, worker, payload = messages.get(timeout=0.5)
-            except queue.Empty:
-                for j, process in enumerate(processes):
-                    if j in results or j in failures or process.exitcode is None:
-                        continue
-                    if j in silent_exit:  # exited a whole timeout ago without a final message: killed
-                        failures[j] = f"exited with code {process.exitcode}"
-                        log.error("worker %d %s", j, failures[j])
-                    silent_exit.add(j)
-                continue
-            if kind == "start":
-                totals[worker] = payload
-                bar.total = sum(t for t, _ in totals.values())
-                bar.update(payload[1])
-            elif kind == "views":
-                bar.update(payload)
-            elif kind == "done":
-                results[worker] = payload
-            else:
-                failures[worker] = payload
-                log.error("worker %d failed: %s", worker, payload)
-    finally:
-        for process in processes:
-            process.join(timeout=None if len(results) + len(failures) == workers else 0)
-            if process.is_alive():
-                process.terminate()
+    with _logging_to(out):
+        return _render_part(config, out, (k + n * worker, n * workers), reconstruct, progress)
+
+
+def _run_workers(config: DatasetConfig, out: Path, shard: tuple[int, int], reconstruct: Reconstruct | None,
+                 workers: int, bar: Any) -> dict[str, Any]:
+    target = functools.partial(_worker, config, out, shard, reconstruct, workers)
+    results, failures, totals = run_workers(target, workers, bar, "render-dataset-worker", log=log.error)
     summary: dict[str, Any] = {"views_total": sum(t for t, _ in totals.values()),
                                "views_before": sum(b for _, b in totals.values()),
                                "views_rendered": sum(r["views_rendered"] for r in results.values()),
@@ -312,11 +221,11 @@ def _run_workers(config: DatasetConfig, out: Path, shard: tuple[int, int], worke
     return summary
 
 
-def _render_part(config: DatasetConfig, out: Path, shard: tuple[int, int], progress: Any) -> dict[str, Any]:
+def _render_part(config: DatasetConfig, out: Path, shard: tuple[int, int], reconstruct: Reconstruct | None,
+                 progress: Any) -> dict[str, Any]:
     """Render the missing views of one shard in this process, reporting to ``progress``."""
-    if config.coarse_shapes:
-        items = autoencoded_items(config.source, config.num_shapes, config.seed, config.coarse_shapes,
-                                  config.coarse_resolution)
+    if reconstruct is not None:
+        items = autoencoded_items(config.source, config.num_shapes, config.seed, reconstruct)
     else:
         items = resolve_source(config.source, config.num_shapes, config.seed)
     mine = [(i, item) for i, item in enumerate(items) if i % shard[1] == shard[0]]
@@ -347,7 +256,7 @@ def _render_part(config: DatasetConfig, out: Path, shard: tuple[int, int], progr
 def _render_shape(config: DatasetConfig, out: Path, index: int, item: SourceItem, views: Sequence[int],
                   writer: BackgroundWriter, versions: dict[str, str], progress: Any) -> int:
     content = item.load()
-    cameras = view_cameras(config, index)
+    cameras = config.cameras(index)
     if config.real_spp and config.lights == "scene" and not content.emitters:
         raise ValueError("--lights scene needs emitters in the scene file")
     # the mask is always rendered: it gives the stored rectangle (the data window) of every file
@@ -358,7 +267,7 @@ def _render_shape(config: DatasetConfig, out: Path, index: int, item: SourceItem
     real_scene = None
     for j, view in enumerate(views):
         camera = cameras[view]
-        lights = view_lights(config, index, view) if config.lights != "scene" else []
+        lights = config.view_lights(index, view)
         stem = f"{item.id}/{view:03d}"
         maps = {name: all_maps[name][j] for name in config.channels}
         window = windows[j]
@@ -369,7 +278,8 @@ def _render_shape(config: DatasetConfig, out: Path, index: int, item: SourceItem
                 emitters = content.emitters if config.lights == "scene" else lights_to_mitsuba(lights)
                 real_scene = build_scene(camera, {**content.shapes, **emitters}, (), {"type": "path", "max_depth": 6},
                                          spp=config.real_spp)
-            set_sensor_camera(real_scene.sensors()[0], camera)
+            else:
+                set_sensor_camera(real_scene.sensors()[0], camera)
             image = render(real_scene, seed=derived_seed(config.seed, index, view))[..., :3]
             files["real"] = f"real/{stem}.exr"
             files["real_png"] = f"real/{stem}.png"

@@ -20,19 +20,19 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import os
+import multiprocessing
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
-from ngp_mi.geometry.families import FAMILIES, generate
-from ngp_mi.geometry.loaders import MESH_SUFFIXES, find_meshes, load_mesh
-from ngp_mi.geometry.mesh import TriangleMesh
-from ngp_mi.geometry.occupancy import (Inside, grid_points, mesh_inside, mesh_occupancy_grid, sample_occupancy_points,
-                                      surface_samples)
+from ngp_mi.atomic import atomic_path, write_json, write_text
+from ngp_mi.geometry.occupancy import load_solid, sample_occupancy_points, surface_samples
+from ngp_mi.geometry.sources import ShapeRef, resolve_shapes
 
 log = logging.getLogger("ngp_mi.shapes")
 
@@ -58,55 +58,28 @@ class ShapeDataConfig:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
 
 
-@dataclasses.dataclass(frozen=True)
-class ShapeItem:
-    id: str
-    load: Callable[[], tuple[TriangleMesh, Inside, Callable[[int], np.ndarray]]]  # mesh, inside test, grid(res)
-
-
-def shape_items(source: str, num_shapes: int, seed: int = 0) -> list[ShapeItem]:
-    """The first ``num_shapes`` shapes of ``source``, loaded lazily."""
-    if source in FAMILIES:
-        def procedural(index: int) -> ShapeItem:
-            def load():
-                obj = generate(source, seed + index)
-                grid = lambda r: obj.solid.occupancy(grid_points(r).reshape(-1, 3)).reshape(r, r, r)  # noqa: E731
-                return obj.mesh(), obj.solid.occupancy, grid
-            return ShapeItem(f"{source}/{seed + index:06d}", load)
-        return [procedural(i) for i in range(num_shapes)]
-
-    path = Path(source)
-    if path.is_file() and path.suffix.lower() in MESH_SUFFIXES:
-        found = [(path.stem, path)]
-    elif path.is_dir():
-        found = [(m.id, m.path) for m in find_meshes(path)]
-    else:
-        raise ValueError(f"shape data: source {source!r} is not a family ({', '.join(sorted(FAMILIES))}), "
-                         "a mesh file or a folder of meshes")
-    if not found:
-        raise ValueError(f"shape data: {source}: no meshes ({', '.join(MESH_SUFFIXES)}) found")
-
-    def from_file(shape_id: str, file: Path) -> ShapeItem:
-        def load():
-            mesh = load_mesh(file)
-            return mesh, mesh_inside(mesh), lambda r: mesh_occupancy_grid(mesh, r)
-        return ShapeItem(shape_id, load)
-    return [from_file(i, p) for i, p in found[:num_shapes]]
+def shape_refs(config: ShapeDataConfig) -> list[ShapeRef]:
+    """The shapes of the configured source (a family or meshes; scene files are no solids)."""
+    try:
+        return resolve_shapes(config.source, config.num_shapes, config.seed, scenes=False)
+    except ValueError as exc:
+        raise ValueError(f"shape data: {exc}") from None
 
 
 def shape_file(root: Path, shape_id: str) -> Path:
     return root / "shapes" / f"{shape_id.replace('/', '__')}.npz"
 
 
-def sample_shape(config: ShapeDataConfig, item: ShapeItem, index: int) -> dict[str, np.ndarray]:
+def sample_shape(config: ShapeDataConfig, ref: ShapeRef, index: int) -> dict[str, np.ndarray]:
     """All arrays of one shape (see the module docstring); deterministic in (seed, index)."""
-    mesh, inside, grid = item.load()
+    solid = load_solid(ref)
+    mesh, inside, grid = solid.mesh, solid.inside, solid.grid
     rng = np.random.default_rng([config.seed, index, 7919])
     arrays: dict[str, np.ndarray] = {}
     grids = {r: grid(r) for r in {*config.resolutions, config.voxel_resolution}}
     voxels = grids[config.voxel_resolution]
     if not voxels.any():
-        raise ValueError(f"{item.id}: no voxel of the {config.voxel_resolution}³ grid is inside the shape "
+        raise ValueError(f"{ref.id}: no voxel of the {config.voxel_resolution}³ grid is inside the shape "
                          "(open sheet or a shape thinner than a voxel)")
     arrays["voxels"] = np.packbits(voxels.ravel())
     for r, count in zip(config.resolutions, config.points):
@@ -117,10 +90,8 @@ def sample_shape(config: ShapeDataConfig, item: ShapeItem, index: int) -> dict[s
 
 
 def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}.npz")
-    np.savez_compressed(tmp, **arrays)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        np.savez_compressed(tmp, **arrays)
 
 
 def _check_settings(out: Path, config: ShapeDataConfig) -> None:
@@ -131,17 +102,14 @@ def _check_settings(out: Path, config: ShapeDataConfig) -> None:
         if changed:
             raise ValueError(f"{settings}: this folder was built with other settings "
                              f"({', '.join(f'{k}: {a!r} → {b!r}' for k, (a, b) in changed.items())}); use a new folder")
-    out.mkdir(parents=True, exist_ok=True)
-    tmp = settings.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(config.to_json(), indent=1) + "\n")
-    os.replace(tmp, settings)
+    write_json(settings, config.to_json())
 
 
 def _build_one(config: ShapeDataConfig, out: Path, index: int) -> str | None:
     """Write shape ``index``; returns None, or the reason it was skipped (runs in worker processes)."""
-    item = shape_items(config.source, config.num_shapes, config.seed)[index]
+    ref = shape_refs(config)[index]
     try:
-        _write_npz(shape_file(out, item.id), sample_shape(config, item, index))
+        _write_npz(shape_file(out, ref.id), sample_shape(config, ref, index))
     except Exception as exc:  # one bad shape must not end a long build
         return str(exc) or type(exc).__name__
     return None
@@ -150,14 +118,9 @@ def _build_one(config: ShapeDataConfig, out: Path, index: int) -> str | None:
 def build_shape_dataset(config: ShapeDataConfig, out: str | Path, progress: bool = True,
                         strict: bool = False, workers: int = 1) -> dict[str, Any]:
     """Build (or finish building) the shape dataset in ``out`` with ``workers`` processes; returns the summary."""
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
-    from tqdm import tqdm
-
     out = Path(out)
     _check_settings(out, config)
-    items = shape_items(config.source, config.num_shapes, config.seed)
+    items = shape_refs(config)
     summary: dict[str, Any] = {"total": len(items), "present": 0, "built": 0, "skipped": {}}
     start = time.perf_counter()
     todo = [i for i, item in enumerate(items) if not shape_file(out, item.id).exists()]
@@ -183,8 +146,8 @@ def build_shape_dataset(config: ShapeDataConfig, out: str | Path, progress: bool
     index_lines = [json.dumps({"id": item.id, "file": str(shape_file(out, item.id).relative_to(out)), "index": i})
                    for i, item in enumerate(items) if shape_file(out, item.id).exists()]
     summary["seconds"] = round(time.perf_counter() - start, 3)
-    (out / "index.jsonl").write_text("".join(line + "\n" for line in index_lines))
-    (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    write_text(out / "index.jsonl", "".join(line + "\n" for line in index_lines))
+    write_json(out / "summary.json", summary)
     log.info("shape data: %d built, %d present, %d skipped (%s)", summary["built"], summary["present"],
              len(summary["skipped"]), out / "summary.json")
     if strict and summary["skipped"]:

@@ -1,4 +1,4 @@
-"""Where dataset shapes come from: a procedural family, a folder of meshes, or Mitsuba scene files.
+"""What the dataset renderer puts in a scene for each shape of a source (:mod:`ngp_mi.geometry.sources`).
 
 ``resolve_source(source, num_shapes, seed)`` returns :class:`SourceItem` s whose ``load()``
 builds the Mitsuba shapes lazily (a bad mesh fails when its turn comes, with its reason):
@@ -12,10 +12,10 @@ builds the Mitsuba shapes lazily (a bad mesh fails when its turn comes, with its
   emitters are used when the dataset asks for the scene's own lights; its sensors and integrator
   are ignored.
 
-:func:`autoencoded_items` turns the shapes of a family or mesh source into NGP's *coarse* shapes:
-each is voxelised, encoded and decoded by a trained shape autoencoder (``ngp-mi train shape``)
-and extracted by marching cubes — what G_shape produces, for shapes whose detailed version is
-known (``render-dataset --coarse-shapes RUN``; ``evaluate maps`` pairs their views by shape id).
+:func:`autoencoded_items` turns the shapes of a family or mesh source into NGP's *coarse* shapes
+through a reconstruction the caller passes (the shape autoencoder's: voxelised, encoded, decoded
+and extracted, what G_shape produces) for shapes whose detailed version is known
+(``render-dataset --coarse-shapes RUN``; ``evaluate maps`` pairs their views by shape id).
 """
 
 from __future__ import annotations
@@ -23,13 +23,15 @@ from __future__ import annotations
 import dataclasses
 import zlib
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Protocol
 
 import numpy as np
 
 from ngp_mi import backend
 from ngp_mi.geometry.families import FAMILIES, Material, generate
-from ngp_mi.geometry.loaders import MESH_SUFFIXES, find_meshes, load_mesh
+from ngp_mi.geometry.loaders import load_mesh
+from ngp_mi.geometry.mesh import TriangleMesh
+from ngp_mi.geometry.sources import SCENE_SUFFIX, ShapeRef, resolve_shapes
 from ngp_mi.render.scene import mesh_parts_to_mitsuba
 
 
@@ -58,104 +60,87 @@ def palette_materials(shape_id: str, part_ids: np.ndarray) -> dict[int, Material
                              roughness=float(rng.uniform(0.3, 0.9))) for p in np.unique(part_ids)}
 
 
-def _procedural(family: str, seed: int) -> SourceItem:
+def _procedural(ref: ShapeRef) -> SourceItem:
     def load() -> SceneContent:
-        obj = generate(family, seed)
+        obj = generate(ref.origin, ref.seed)
         mesh = obj.mesh()
         shapes = mesh_parts_to_mitsuba(mesh, {k: m.to_mitsuba() for k, m in obj.materials.items()})
         return SceneContent(shapes, mesh.bounds, meta={
             "params": obj.params, "materials": {obj.part_names[k]: m.to_dict() for k, m in obj.materials.items()}})
 
-    return SourceItem(f"{family}/{seed:06d}", "procedural", family, load)
+    return SourceItem(ref.id, ref.kind, ref.origin, load)
 
 
-def _mesh(shape_id: str, path: Path) -> SourceItem:
+def _mesh(ref: ShapeRef) -> SourceItem:
     def load() -> SceneContent:
-        mesh = load_mesh(path)
-        materials = palette_materials(shape_id, mesh.part_ids)
+        mesh = load_mesh(ref.path)
+        materials = palette_materials(ref.id, mesh.part_ids)
         shapes = mesh_parts_to_mitsuba(mesh, {k: m.to_mitsuba() for k, m in materials.items()})
         return SceneContent(shapes, mesh.bounds, meta={
             "parts": len(materials), "materials": {str(k): m.to_dict() for k, m in materials.items()}})
 
-    return SourceItem(shape_id, "mesh", str(path), load)
+    return SourceItem(ref.id, ref.kind, ref.origin, load)
 
 
-def _scene(shape_id: str, path: Path) -> SourceItem:
+def _scene(ref: ShapeRef) -> SourceItem:
     def load() -> SceneContent:
         mi = backend.mitsuba()
         try:
-            scene = mi.load_file(str(path))
+            scene = mi.load_file(str(ref.path))
         except Exception as exc:  # Mitsuba raises RuntimeError with the parser's message
-            raise ValueError(f"{path}: not a loadable Mitsuba scene ({exc})") from None
+            raise ValueError(f"{ref.path}: not a loadable Mitsuba scene ({exc})") from None
         shapes = {f"shape_{i}": shape for i, shape in enumerate(scene.shapes())}
         if not shapes:
-            raise ValueError(f"{path}: the scene contains no shapes")
+            raise ValueError(f"{ref.path}: the scene contains no shapes")
         bbox = scene.bbox()
         bounds = np.array([list(bbox.min), list(bbox.max)], np.float64)
         emitters = {f"emitter_{i}": e for i, e in enumerate(scene.emitters())}
         return SceneContent(shapes, bounds, emitters, meta={"shapes": len(shapes), "emitters": len(emitters)})
 
-    return SourceItem(shape_id, "scene", str(path), load)
+    return SourceItem(ref.id, ref.kind, ref.origin, load)
+
+
+_LOADERS = {"procedural": _procedural, "mesh": _mesh, "scene": _scene}
 
 
 def resolve_source(source: str, num_shapes: int, seed: int = 0) -> list[SourceItem]:
-    """The first ``num_shapes`` items of ``source`` (a family name, a mesh / scene file or folder)."""
-    if num_shapes < 1:
-        raise ValueError(f"num_shapes must be >= 1, got {num_shapes}")
-    if source in FAMILIES:
-        return [_procedural(source, seed + i) for i in range(num_shapes)]
-    path = Path(source)
-    if path.is_file():
-        if path.suffix.lower() == ".xml":
-            return [_scene(path.stem, path)]
-        if path.suffix.lower() in MESH_SUFFIXES:
-            return [_mesh(path.stem, path)]
-        raise ValueError(f"{path}: not a mesh ({', '.join(MESH_SUFFIXES)}) or Mitsuba scene (.xml)")
-    if path.is_dir():
-        scenes = sorted(path.glob("*.xml"))
-        if scenes:
-            return [_scene(p.stem, p) for p in scenes[:num_shapes]]
-        meshes = find_meshes(path)
-        if not meshes:
-            raise ValueError(f"{path}: no meshes ({', '.join(MESH_SUFFIXES)}) or scene files found")
-        return [_mesh(m.id, m.path) for m in meshes[:num_shapes]]
-    raise ValueError(f"--source {source!r}: not a family ({', '.join(sorted(FAMILIES))}), file or folder")
+    """The first ``num_shapes`` items of ``source`` (:func:`~ngp_mi.geometry.sources.resolve_shapes`)."""
+    return [_LOADERS[ref.kind](ref) for ref in resolve_shapes(source, num_shapes, seed)]
 
 
-def autoencoded_items(source: str, num_shapes: int, seed: int, shape_run: str | Path,
-                      resolution: int = 64) -> list[SourceItem]:
-    """The shapes of ``source`` reconstructed by the shape autoencoder of ``shape_run``.
+class Reconstruct(Protocol):
+    """A shape's coarse version: given the shape's occupancy grid function (resolution → bool
+    grid), the coarse mesh, or None when it is empty. ``meta`` goes into each item's record."""
+
+    meta: dict[str, Any]
+
+    def __call__(self, grid: Callable[[int], np.ndarray]) -> TriangleMesh | None: ...
+
+
+def autoencoded_items(source: str, num_shapes: int, seed: int, reconstruct: Reconstruct) -> list[SourceItem]:
+    """The shapes of ``source`` as ``reconstruct`` gives them (NGP's coarse shapes: the shape
+    autoencoder's reconstructions, :class:`ngp_mi.models.shape.CoarseShapes`).
 
     Ids are the original shapes' ids, so the views of a dataset of these coarse shapes pair with
     the views of the detailed ones (same seed: same cameras). Every part gets one grey diffuse
-    material (the coarse shape carries no parts). A shape the autoencoder turns empty fails when
-    its turn comes, with that reason.
+    material (the coarse shape carries no parts). A shape that comes back empty fails when its
+    turn comes, with that reason.
     """
-    import torch
+    # Here, not at the top: occupancy imports torch (~3 s), which dataset workers otherwise go without.
+    from ngp_mi.geometry.occupancy import load_solid
 
-    from ngp_mi.data.shapes import shape_items
-    from ngp_mi.train_shape import load_shape_model
-
-    if source not in FAMILIES and Path(source).suffix.lower() == ".xml":
+    if source not in FAMILIES and Path(source).suffix.lower() == SCENE_SUFFIX:
         raise ValueError(f"--coarse-shapes needs a family or mesh source, not a scene file: {source!r}")
-    model = load_shape_model(shape_run)
-    voxel_resolution = model.config.voxel_resolution
     grey = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.5, 0.5, 0.5]}}
 
-    def coarse(item: Any) -> SourceItem:
+    def coarse(ref: ShapeRef) -> SourceItem:
         def load() -> SceneContent:
-            _, _, grid = item.load()
-            voxels = torch.from_numpy(grid(voxel_resolution)).float()[None, None]
-            with torch.no_grad():
-                code = model.encode(voxels.to(model.device))[0]
-            extraction = model.extract(code, resolution)
-            if extraction.mesh is None:
-                raise ValueError(f"{item.id}: the autoencoder of {shape_run} reconstructs an empty shape")
-            mesh = extraction.mesh
+            mesh = reconstruct(load_solid(ref).grid)
+            if mesh is None:
+                raise ValueError(f"{ref.id}: the reconstruction ({reconstruct.meta}) is an empty shape")
             return SceneContent(mesh_parts_to_mitsuba(mesh, default_bsdf=grey), mesh.bounds,
-                                meta={"coarse_of": item.id, "shape_run": str(shape_run), "resolution": resolution,
-                                      "faces": int(len(mesh.faces))})
+                                meta={"coarse_of": ref.id, **reconstruct.meta, "faces": int(len(mesh.faces))})
 
-        return SourceItem(item.id, "autoencoded", str(source), load)
+        return SourceItem(ref.id, "autoencoded", str(source), load)
 
-    return [coarse(item) for item in shape_items(source, num_shapes, seed)]
+    return [coarse(ref) for ref in resolve_shapes(source, num_shapes, seed, scenes=False)]

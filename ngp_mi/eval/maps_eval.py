@@ -11,7 +11,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -19,12 +18,11 @@ from typing import Any
 import torch
 from torch.utils.data import DataLoader
 
-from ngp_mi.checkpoint import list_checkpoints, load_checkpoint, saved_modules
+from ngp_mi.atomic import write_json, write_text
 from ngp_mi.data.datasets import ReflectanceMapDataset
+from ngp_mi.models.checkpoint import newest_checkpoint
 from ngp_mi.models.maps import MapsModel, cameras_of, depth_to_net
-from ngp_mi.render.maps import normals_from_depth
-from ngp_mi.models.specular import SpecularModel
-from ngp_mi.train_maps import NETWORKS, SPECULAR_NETWORKS, model_config, specular_config
+from ngp_mi.render.from_depth import normals_from_depth
 from ngp_mi.viz import contact_sheet, save_png
 
 
@@ -53,28 +51,6 @@ def smooth_depth(depth: torch.Tensor, mask: torch.Tensor, sigma: float) -> torch
     return torch.where(mask > 0, blur(depth * mask) / weight.clamp_min(1e-8), torch.zeros_like(depth))
 
 
-def load_model(run: str | Path) -> MapsModel:
-    """The map networks of the newest checkpoint of a training run."""
-    checkpoints = list_checkpoints(run)
-    if not checkpoints:
-        raise ValueError(f"{run}: no checkpoint found (ckpt-*/weights.safetensors + state.pt)")
-    state = torch.load(checkpoints[-1] / "state.pt", map_location="cpu", weights_only=True)
-    model = MapsModel(model_config(json.loads(state["config"])))
-    load_checkpoint(checkpoints[-1], {name: getattr(model, name) for name in NETWORKS})
-    return model.eval()
-
-
-def load_specular(run: str | Path) -> SpecularModel | None:
-    """G_sp^real (and its training partners) of the newest checkpoint, or None if the run has no specular stage."""
-    checkpoint = list_checkpoints(run)[-1]
-    if "G_sp" not in saved_modules(checkpoint):
-        return None
-    state = torch.load(checkpoint / "state.pt", map_location="cpu", weights_only=True)
-    model = SpecularModel(specular_config(json.loads(state["config"])))
-    load_checkpoint(checkpoint, {name: getattr(model, name) for name in SPECULAR_NETWORKS})
-    return model.eval()
-
-
 @torch.no_grad()
 def evaluate_maps(run: str | Path, data: str | Path, out: str | Path, coarse_sigma: float = 2.0,
                   latent_samples: int = 4, batch_size: int = 8, seed: int = 0,
@@ -87,7 +63,7 @@ def evaluate_maps(run: str | Path, data: str | Path, out: str | Path, coarse_sig
     the pixels on both the detailed and the coarse object.
     """
     torch.manual_seed(seed)
-    model = load_model(run)
+    model = MapsModel.from_run(run)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     errors_gn, errors_depth, fidelity, diversity, overlap = [], [], [], [], []
@@ -130,7 +106,7 @@ def evaluate_maps(run: str | Path, data: str | Path, out: str | Path, coarse_sig
                                            "z sample", "z sample"], columns=len(images))
     gn, from_depth = torch.cat(errors_gn), torch.cat(errors_depth)
     result = {
-        "checkpoint": str(list_checkpoints(run)[-1]), "data": str(data),
+        "checkpoint": str(newest_checkpoint(run)), "data": str(data),
         "coarse": str(coarse_data) if coarse_data else f"smoothed, sigma {coarse_sigma} px",
         "coarse_overlap": torch.stack(overlap).mean().item(),
         "normal_error_deg": {"G_n": {"mean": gn.mean().item(), "median": gn.median().item()},
@@ -138,11 +114,11 @@ def evaluate_maps(run: str | Path, data: str | Path, out: str | Path, coarse_sig
         "albedo_reconstruction_l1": torch.cat(fidelity).mean().item(),
         "albedo_diversity_l1": torch.stack(diversity).mean().item(),
     }
-    (out / "eval.json").write_text(json.dumps(result, indent=1) + "\n")
+    write_json(out / "eval.json", result)
     n = result["normal_error_deg"]
     coarse_text = (f"the shapes' autoencoder reconstructions (`{coarse_data}`)" if coarse_data else
                    f"the ground truth smoothed by a masked Gaussian of σ = {coarse_sigma} px")
-    (out / "eval.md").write_text(
+    write_text(out / "eval.md", 
         f"# Map networks: {result['checkpoint']}\n\nHeld-out data: `{data}`; coarse depth: {coarse_text} (it covers "
         f"{100 * result['coarse_overlap']:.1f} % of the detailed object's pixels; errors over the pixels of both)."
         f"\n\n| normals from the coarse depth | mean error ° | median ° |\n"

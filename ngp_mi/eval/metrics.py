@@ -9,8 +9,10 @@ degree).
 
 from __future__ import annotations
 
+import flip_evaluator
 import numpy as np
 from scipy import linalg
+from skimage.metrics import structural_similarity
 
 
 def _select(error: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
@@ -30,8 +32,6 @@ def psnr(reference: np.ndarray, test: np.ndarray, mask: np.ndarray | None = None
 
 def ssim(reference: np.ndarray, test: np.ndarray, mask: np.ndarray | None = None, data_range: float = 1.0) -> float:
     """Mean structural similarity (colour channels averaged), over the mask when given."""
-    from skimage.metrics import structural_similarity
-
     _, ssim_map = structural_similarity(np.asarray(reference, np.float64), np.asarray(test, np.float64),
                                         channel_axis=-1, data_range=data_range, gaussian_weights=True,
                                         sigma=1.5, use_sample_covariance=False, full=True)
@@ -40,8 +40,6 @@ def ssim(reference: np.ndarray, test: np.ndarray, mask: np.ndarray | None = None
 
 def flip(reference_srgb: np.ndarray, test_srgb: np.ndarray, mask: np.ndarray | None = None) -> tuple[float, np.ndarray]:
     """Mean FLIP error (0 = identical, 1 = maximal) of display images, and the (H, W) error map."""
-    import flip_evaluator
-
     error_map, _, _ = flip_evaluator.evaluate(np.clip(reference_srgb, 0, 1).astype(np.float32),
                                               np.clip(test_srgb, 0, 1).astype(np.float32), "LDR",
                                               inputsRGB=True, applyMagma=False, computeMeanError=False)

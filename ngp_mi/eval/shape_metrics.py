@@ -32,7 +32,7 @@ def chamfer_matrix(generated: Sequence[np.ndarray], reference: Sequence[np.ndarr
     Nearest neighbours come from one k-d tree per cloud (scipy), O(N log N) per pair instead of the
     N² distances of a dense block: 64 × 256 pairs of 2048-point clouds take seconds, not minutes.
     """
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # ~0.7 s to import: only the sample metrics need it
 
     gen_trees = [cKDTree(np.asarray(g, np.float64)) for g in generated]
     ref_trees = [cKDTree(np.asarray(r, np.float64)) for r in reference]

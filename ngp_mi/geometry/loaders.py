@@ -46,7 +46,7 @@ def load_mesh(path: str | Path, normalize: bool = True) -> TriangleMesh:
     Faces of zero area are dropped (logged); a file with no faces left, non-finite vertices or
     that trimesh cannot parse raises :class:`MeshError`.
     """
-    import trimesh
+    import trimesh  # here, not at the top: it takes over a second to import, and most jobs read no mesh file
 
     path = Path(path)
     if not path.is_file():

@@ -23,6 +23,7 @@ a margin that keeps extracted surfaces closed) and are indexed ``[i, j, k]`` ↔
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Callable
 
@@ -30,7 +31,10 @@ import numpy as np
 import torch
 from scipy import ndimage
 
+from ngp_mi.geometry.families import generate
+from ngp_mi.geometry.loaders import load_mesh
 from ngp_mi.geometry.mesh import TriangleMesh
+from ngp_mi.geometry.sources import ShapeRef
 
 DOMAIN = 0.55
 Inside = Callable[[np.ndarray], np.ndarray]  # (P, 3) points → (P,) bool
@@ -174,3 +178,25 @@ def voxel_iou(a: np.ndarray, b: np.ndarray) -> float:
     """Intersection over union of two boolean grids (1 when both are empty)."""
     union = np.logical_or(a, b).sum()
     return float(np.logical_and(a, b).sum() / union) if union else 1.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Solid:
+    """A shape as a solid: its surface, an inside test of points, and its occupancy on grids."""
+
+    mesh: TriangleMesh
+    inside: Inside
+    grid: Callable[[int], np.ndarray]  # resolution R → (R, R, R) bool occupancy at the cell centres
+
+
+def load_solid(ref: ShapeRef) -> Solid:
+    """A procedural object (exact occupancy from its signed distance) or a mesh file (generalised
+    winding numbers, so open meshes work); scenes are not solids."""
+    if ref.kind == "procedural":
+        obj = generate(ref.origin, ref.seed)
+        return Solid(obj.mesh(), obj.solid.occupancy,
+                     lambda r: obj.solid.occupancy(grid_points(r).reshape(-1, 3)).reshape(r, r, r))
+    if ref.kind == "mesh":
+        mesh = load_mesh(ref.path)
+        return Solid(mesh, mesh_inside(mesh), lambda r: mesh_occupancy_grid(mesh, r))
+    raise ValueError(f"{ref.origin}: a {ref.kind} is not a solid (the shape prior needs a family or meshes)")

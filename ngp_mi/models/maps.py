@@ -20,7 +20,7 @@ albedo, NOC and diffuse images ``2x − 1``; normals as they are.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable
+from typing import Any
 
 import torch
 from torch import nn
@@ -28,9 +28,10 @@ from torch import nn
 from ngp_mi.camera import Camera
 from ngp_mi.lights import overhead_rig
 from ngp_mi.models import losses
+from ngp_mi.models.base import BaseModel, config_from_dict
 from ngp_mi.nets.networks import define_D, define_E, define_G
-from ngp_mi.render.maps import noc_from_depth_batch, normals_from_depth
-from ngp_mi.render.shading import CameraLights, shade
+from ngp_mi.render.from_depth import noc_from_depth_batch, normals_from_depth
+from ngp_mi.render.shading import DEFAULT, CameraLights, Constants, shade
 
 DEPTH_CENTER, DEPTH_SCALE, MASK_THRESHOLD = 2.0, 0.6, -0.97
 
@@ -44,13 +45,21 @@ class MapsConfig:
     latent_dim: int = 8
     lr: float = 1e-4
     beta1: float = 0.5
-    k_d: float = 0.8  # chairs; 0.6 for cars (App. "Training details")
+    # R_BP's constants of this model's family (Constants: chairs 0.8 / 0.2, cars 0.6 / 0.4); training
+    # shades with k_d, NGP's images with all three.
+    k_d: float = DEFAULT.k_d
+    k_s: float = DEFAULT.k_s
+    alpha: float = DEFAULT.alpha
     rf_maps: tuple[int, ...] = (70, 142)
     rf_albedo: tuple[int, ...] = (34,)
     # G_n predicts a correction to the normals of the input depth (finite differences, held fixed)
     # instead of the normals themselves; off in the paper's G_n. See :meth:`MapsModel.generate_normals`.
     normal_residual: bool = False
     lambdas: tuple[tuple[str, float], ...] = tuple(losses.LAMBDAS.items())
+
+    @property
+    def constants(self) -> Constants:
+        return Constants(self.k_d, self.k_s, self.alpha)
 
 
 def depth_to_net(depth: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -69,20 +78,12 @@ def cameras_of(batch: dict[str, Any], size: tuple[int, int] | None = None) -> li
     return [Camera.from_K_E(K.numpy(), E.numpy(), w, h) for K, E in zip(batch["K"].cpu(), batch["E"].cpu())]
 
 
-def optimizer_step(optimizer: torch.optim.Optimizer, loss: torch.Tensor,
-                   gradient_hook: Callable[[list[torch.Tensor]], None] | None = None) -> None:
-    """Backward and step; ``gradient_hook`` sees the parameters in between (multi-process training
-    averages their gradients there)."""
-    optimizer.zero_grad(set_to_none=True)
-    loss.backward()
-    if gradient_hook is not None:
-        gradient_hook([p for group in optimizer.param_groups for p in group["params"]])
-    optimizer.step()
-
-
-class MapsModel(nn.Module):
+class MapsModel(BaseModel):
     """Owns the map networks, their optimisers and losses; :meth:`optimize` runs one training step."""
 
+    network_names = ("G_n", "G_da", "G_depth", "E_da", "D_n", "D_da", "D_df", "D_depth", "D_noc")
+    optimizer_names = ("opt_G", "opt_D")
+    config_class, config_key = MapsConfig, "maps"
     loss_names = ("gan_n", "gan_da", "gan_df", "gan_depth", "gan_noc", "cyc_n", "cyc_da", "cyc_df", "cyc_depth",
                   "cyc_noc", "cyc_z", "kl", "G", "D")
     visual_names = ("depth_r", "normal_g", "albedo_g", "diffuse_g", "depth_cycled", "diffuse_r", "depth_g",
@@ -111,13 +112,10 @@ class MapsModel(nn.Module):
         self.opt_G = torch.optim.Adam([p for m in generators for p in m.parameters()], lr=c.lr, betas=betas)
         self.opt_D = torch.optim.Adam([p for m in self.discriminators for p in m.parameters()], lr=c.lr, betas=betas)
         self.lights = overhead_rig()
-        self.visuals: dict[str, torch.Tensor] = {}
-        # Called with each optimiser's parameters between backward and step (multi-process training
-        # averages gradients there).
-        self.gradient_hook: Callable[[list[torch.Tensor]], None] | None = None
 
-    def _step(self, optimizer: torch.optim.Optimizer, loss: torch.Tensor) -> None:
-        optimizer_step(optimizer, loss, self.gradient_hook)
+    @classmethod
+    def config_from_recipe(cls, recipe: dict[str, Any]) -> MapsConfig:
+        return config_from_dict(MapsConfig, recipe["model"])
 
     # ------------------------------------------------------------------ pieces
     def render_diffuse(self, normal: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor,
@@ -216,9 +214,9 @@ class MapsModel(nn.Module):
             D.requires_grad_(False)
         terms = self(depth_batch, maps_batch)
         loss_G = losses.total_2d_loss(terms, dict(self.config.lambdas))
-        self._step(self.opt_G, loss_G)
+        self.optimizer_step(self.opt_G, loss_G)
         for D in self.discriminators:
             D.requires_grad_(True)
         loss_D = self.discriminator_terms()
-        self._step(self.opt_D, loss_D)
+        self.optimizer_step(self.opt_D, loss_D)
         return {**{k: v.item() for k, v in terms.items()}, "G": loss_G.item(), "D": loss_D.item()}

@@ -17,14 +17,17 @@ decoder (see :mod:`ngp_mi.geometry.extract`).
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 import torch
 from torch import nn
 
 from ngp_mi.geometry.extract import Extraction, attach_iso_surface_gradient, extract_mesh
+from ngp_mi.geometry.mesh import TriangleMesh
 from ngp_mi.geometry.occupancy import grid_points
+from ngp_mi.models.base import BaseModel, config_from_dict
 from ngp_mi.nets.imnet import define_shape_nets
 
 LEVEL = 0.5  # the decoder's iso-level: occupancy 1/2
@@ -74,8 +77,13 @@ def generator_loss(fake_scores: torch.Tensor) -> torch.Tensor:
 
 # --------------------------------------------------------------------------- model
 
-class ShapeModel(nn.Module):
+class ShapeModel(BaseModel):
     """Owns E_voxel, the decoder, G_latent, D_latent and their optimisers."""
+
+    network_names = ("encoder", "decoder", "G_latent", "D_latent")
+    optimizer_names = ("opt_ae", "opt_G", "opt_D")
+    loss_names = ("ae_mse", "ae_point_accuracy", "gan_wasserstein", "gan_gp", "gan_G")
+    config_class, config_key = ShapeConfig, "shape"
 
     def __init__(self, config: ShapeConfig = ShapeConfig()):
         super().__init__()
@@ -89,9 +97,11 @@ class ShapeModel(nn.Module):
         self.opt_G = torch.optim.Adam(self.G_latent.parameters(), lr=c.gan_lr, betas=(0.5, 0.9))
         self.opt_D = torch.optim.Adam(self.D_latent.parameters(), lr=c.gan_lr, betas=(0.5, 0.9))
 
-    @property
-    def device(self) -> torch.device:
-        return next(self.parameters()).device
+    @classmethod
+    def config_from_recipe(cls, recipe: dict[str, Any]) -> ShapeConfig:
+        """``[model]``, with the encoder's voxel grid from ``[data]``."""
+        voxels = recipe["data"].get("voxel_resolution", ShapeConfig.voxel_resolution)
+        return config_from_dict(ShapeConfig, {"voxel_resolution": voxels, **recipe["model"]})
 
     # ---- phase 1
     def ae_step(self, voxels: torch.Tensor, points: torch.Tensor, occ: torch.Tensor) -> dict[str, float]:
@@ -100,9 +110,7 @@ class ShapeModel(nn.Module):
         self.decoder.train()
         predicted = self.decoder(points, self.encoder(voxels))
         loss = occupancy_loss(predicted, occ)
-        self.opt_ae.zero_grad(set_to_none=True)
-        loss.backward()
-        self.opt_ae.step()
+        self.optimizer_step(self.opt_ae, loss)
         with torch.no_grad():
             accuracy = ((predicted > LEVEL) == (occ > 0.5)).float().mean()
         return {"ae_mse": loss.item(), "ae_point_accuracy": accuracy.item()}
@@ -122,15 +130,11 @@ class ShapeModel(nn.Module):
                 fake = self.G_latent(torch.randn(n, c.z_dim, device=real_codes.device))
             d_wgan = critic_loss(self.D_latent(real_codes), self.D_latent(fake))
             gp = gradient_penalty(self.D_latent, real_codes, fake)
-            self.opt_D.zero_grad(set_to_none=True)
-            (d_wgan + c.gp_weight * gp).backward()
-            self.opt_D.step()
+            self.optimizer_step(self.opt_D, d_wgan + c.gp_weight * gp)
         for p in self.D_latent.parameters():
             p.requires_grad_(False)
         g = generator_loss(self.D_latent(self.G_latent(torch.randn(n, c.z_dim, device=real_codes.device))))
-        self.opt_G.zero_grad(set_to_none=True)
-        g.backward()
-        self.opt_G.step()
+        self.optimizer_step(self.opt_G, g)
         for p in self.D_latent.parameters():
             p.requires_grad_(True)
         # -d_wgan estimates the Wasserstein distance between real and generated codes.
@@ -183,12 +187,30 @@ class ShapeModel(nn.Module):
         vertices = torch.as_tensor(extraction.mesh.vertices, device=self.device)
         return attach_iso_surface_gradient(vertices, self.field(code)), extraction.mesh.faces
 
-    def networks(self) -> dict[str, nn.Module]:
-        return {"encoder": self.encoder, "decoder": self.decoder, "G_latent": self.G_latent, "D_latent": self.D_latent}
+    @torch.no_grad()
+    def reconstruct(self, voxels: torch.Tensor, resolution: int = 64) -> Extraction:
+        """decode(encode(voxels)) extracted: the autoencoder's version of a (V, V, V) occupancy grid."""
+        code = self.encode(torch.as_tensor(voxels, dtype=torch.float32)[None, None].to(self.device))[0]
+        return self.extract(code, resolution)
 
-    def optimizer_state(self) -> dict[str, Any]:
-        return {"opt_ae": self.opt_ae.state_dict(), "opt_G": self.opt_G.state_dict(), "opt_D": self.opt_D.state_dict()}
 
-    def load_optimizer_state(self, state: dict[str, Any]) -> None:
-        for name in ("opt_ae", "opt_G", "opt_D"):
-            getattr(self, name).load_state_dict(state[name])
+class CoarseShapes:
+    """NGP's coarse shapes: a shape's occupancy grid function → its reconstruction by the shape
+    autoencoder of a ``train shape`` run (marching cubes at ``resolution``), None when empty.
+
+    The ``reconstruct`` of :func:`ngp_mi.data.sources.autoencoded_items` and ``render-dataset
+    --coarse-shapes``; picklable (worker processes load the model themselves, once).
+    """
+
+    def __init__(self, run: str | Path, resolution: int = 64):
+        self.run, self.resolution = str(run), int(resolution)
+        self.meta = {"shape_run": self.run, "resolution": self.resolution}
+        self._model: ShapeModel | None = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "_model": None}
+
+    def __call__(self, grid: Callable[[int], np.ndarray]) -> TriangleMesh | None:
+        if self._model is None:
+            self._model = ShapeModel.from_run(self.run)
+        return self._model.reconstruct(grid(self._model.config.voxel_resolution), self.resolution).mesh

@@ -29,10 +29,10 @@ import math
 from typing import Any, Callable
 
 import torch
-from torch import nn
 
 from ngp_mi.models import losses
-from ngp_mi.models.maps import MapsModel, cameras_of, net_to_depth, optimizer_step
+from ngp_mi.models.base import BaseModel, config_from_dict
+from ngp_mi.models.maps import MapsModel, cameras_of, net_to_depth
 from ngp_mi.nets.networks import define_D, define_G
 
 
@@ -86,10 +86,13 @@ def specular_cycle_loss(cycled: torch.Tensor, original: torch.Tensor) -> torch.T
     return (cycled - original).abs().mean()
 
 
-class SpecularModel(nn.Module):
+class SpecularModel(BaseModel):
     """G_sp^real with its inverse F_sp and discriminators; :meth:`optimize` trains them on top of a
     frozen :class:`MapsModel` (the paper's second stage; App. "Training details")."""
 
+    network_names = ("G_sp", "F_sp", "D_real", "D_dfr")
+    optimizer_names = ("opt_sp_G", "opt_sp_D")  # beside the map networks' opt_G / opt_D in one checkpoint
+    config_class, config_key = SpecularConfig, "specular"
     loss_names = ("gan_real", "gan_dfr", "cyc_generated", "cyc_real", "G", "D")
     visual_names = ("diffuse_g", "specular_g", "composite_g", "real", "diffuse_of_real", "real_cycled")
 
@@ -101,10 +104,16 @@ class SpecularModel(nn.Module):
         self.D_real = define_D(3, c.rf_image, c.ndf)
         self.D_dfr = define_D(3, c.rf_image, c.ndf)
         betas = (c.beta1, 0.999)
-        self.opt_G = torch.optim.Adam([*self.G_sp.parameters(), *self.F_sp.parameters()], lr=c.lr, betas=betas)
-        self.opt_D = torch.optim.Adam([*self.D_real.parameters(), *self.D_dfr.parameters()], lr=c.lr, betas=betas)
-        self.visuals: dict[str, torch.Tensor] = {}
-        self.gradient_hook: Callable[[list[torch.Tensor]], None] | None = None
+        self.opt_sp_G = torch.optim.Adam([*self.G_sp.parameters(), *self.F_sp.parameters()], lr=c.lr, betas=betas)
+        self.opt_sp_D = torch.optim.Adam([*self.D_real.parameters(), *self.D_dfr.parameters()], lr=c.lr, betas=betas)
+
+    @classmethod
+    def config_from_recipe(cls, recipe: dict[str, Any]) -> SpecularConfig | None:
+        """From the ``[specular]`` table (its data keys aside); None for a run without the stage."""
+        if "specular" not in recipe:
+            return None
+        fields = {f.name for f in dataclasses.fields(SpecularConfig)}
+        return config_from_dict(SpecularConfig, {k: v for k, v in recipe["specular"].items() if k in fields})
 
     def specular(self, normal: torch.Tensor, diffuse_net: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """I_rs = G_sp^real(N, I_df): linear radiance in [0, 1], zero off the object. ``diffuse_net``
@@ -149,9 +158,6 @@ class SpecularModel(nn.Module):
             "cyc_real": specular_cycle_loss(real_cycled_net, real_net),
         }
 
-    def _step(self, optimizer: torch.optim.Optimizer, loss: torch.Tensor) -> None:
-        optimizer_step(optimizer, loss, self.gradient_hook)
-
     def optimize(self, maps: MapsModel, depth_batch: dict[str, Any], real: torch.Tensor) -> dict[str, float]:
         """One step: G_sp and F_sp (discriminators and map networks frozen), then D_real and D_dfr."""
         maps.requires_grad_(False)
@@ -160,11 +166,11 @@ class SpecularModel(nn.Module):
         terms = self(maps, depth_batch, real)
         loss_G = (terms["gan_real"] + terms["gan_dfr"]
                   + self.config.lambda_cycle * (terms["cyc_generated"] + terms["cyc_real"]))
-        self._step(self.opt_G, loss_G)
+        self.optimizer_step(self.opt_sp_G, loss_G)
         for D in (self.D_real, self.D_dfr):
             D.requires_grad_(True)
         loss_D = (losses.discriminator_loss(self.D_real, *self._for_d["real"])
                   + losses.discriminator_loss(self.D_dfr, *self._for_d["diffuse"]))
-        self._step(self.opt_D, loss_D)
+        self.optimizer_step(self.opt_sp_D, loss_D)
         maps.requires_grad_(True)
         return {**{k: v.item() for k, v in terms.items()}, "G": loss_G.item(), "D": loss_D.item()}

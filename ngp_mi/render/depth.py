@@ -28,8 +28,9 @@ import torch
 
 from ngp_mi import backend
 from ngp_mi.camera import Camera
+from ngp_mi.render import integrators
 from ngp_mi.render.rays import camera_table, pixel_centre_rays
-from ngp_mi.render.scene import MESH_POSITIONS, mitsuba_mesh
+from ngp_mi.render.scene import MESH_POSITIONS, mitsuba_mesh, set_sensor_camera
 
 _MESH_KEY = "mesh"
 
@@ -157,6 +158,87 @@ def projector_for(faces: np.ndarray | torch.Tensor, num_vertices: int) -> MeshPr
     return _projectors[key]
 
 
+class SilhouetteRenderer:
+    """The ``depth_projective`` integrator and one box-filtered sensor of one resolution, moved between views."""
+
+    def __init__(self, camera: Camera, spp: int):
+        mi = backend.mitsuba()
+        integrators.register()
+        self.integrator = mi.load_dict({"type": "depth_projective"})
+        sensor = camera.to_mitsuba(spp=spp, rfilter="box")
+        sensor["film"]["sample_border"] = True  # shapes entering / leaving the frame
+        self.sensor = mi.load_dict(sensor)
+
+
+_renderers: dict[tuple[int, int, int], SilhouetteRenderer] = {}
+
+
+def silhouette_renderer(camera: Camera, spp: int) -> SilhouetteRenderer:
+    """The cached :class:`SilhouetteRenderer` of a resolution and sample count."""
+    key = (camera.width, camera.height, spp)
+    if key not in _renderers:
+        _renderers[key] = SilhouetteRenderer(camera, spp)
+    return _renderers[key]
+
+
+class _RenderDepthCoverage(torch.autograd.Function):
+    """torch autograd around the ``depth_projective`` integrator's render / render_backward, view by view."""
+
+    @staticmethod
+    def forward(ctx, projector: Any, cameras: Sequence[Camera], spp: int, boundary_spp: int, seed: int,
+                vertices: torch.Tensor):  # type: ignore[override]
+        projector.set_vertices(vertices)
+        images = []
+        for i, camera in enumerate(cameras):
+            r = silhouette_renderer(camera, spp)
+            set_sensor_camera(r.sensor, camera)
+            r.integrator.set_camera(camera)
+            image = r.integrator.render(projector.scene, r.sensor, seed=seed + i, spp=spp)
+            images.append(image.torch()[..., :2].permute(2, 0, 1))
+        ctx.projector, ctx.cameras, ctx.spp, ctx.boundary_spp, ctx.seed = projector, list(cameras), spp, boundary_spp, seed
+        ctx.save_for_backward(vertices)
+        out = torch.stack(images).to(vertices.device)
+        return out[:, :1].contiguous(), out[:, 1:2].contiguous()
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_depth, g_mask):  # type: ignore[override]
+        mi, dr = backend.mitsuba(), backend.drjit()
+        (vertices,) = ctx.saved_tensors
+        projector = ctx.projector
+        positions = projector.set_vertices(vertices, requires_grad=True)
+        zero = torch.zeros_like(g_depth[:, 0])
+        for i, camera in enumerate(ctx.cameras):
+            r = silhouette_renderer(camera, ctx.spp)
+            set_sensor_camera(r.sensor, camera)
+            r.integrator.set_camera(camera)
+            grad_image = torch.stack([g_depth[i, 0], g_mask[i, 0], zero[i]], dim=-1).to(torch.float32).contiguous()
+            # A runtime spp would override both counts; with 0 the integrator's own are used.
+            r.integrator.sppc, r.integrator.sppp = ctx.spp, ctx.boundary_spp
+            r.integrator.render_backward(projector.scene, projector.params, mi.TensorXf(grad_image),
+                                         r.sensor, seed=ctx.seed + i, spp=0)
+        grad = dr.grad(projector.params[projector.key]).torch().reshape(-1, 3).to(vertices.device, vertices.dtype)
+        dr.disable_grad(positions)
+        return None, None, None, None, None, grad
+
+
+def render_depth_coverage(projector: Any, vertices: torch.Tensor, cameras: Sequence[Camera], spp: int = 8,
+                          boundary_spp: int | None = None, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pixel-averaged depth and coverage, (N, 1, H, W) each, differentiable including silhouettes.
+
+    ``spp`` samples per pixel estimate the maps and their interior derivative; ``boundary_spp``
+    (default: ``max(1, spp // 4)``) per pixel sample the silhouette edges. The boundary term
+    dominates the cost (its samples scale with the image area, not the silhouette length), so a
+    small ``boundary_spp`` buys most of the speed. Its variance is high when the loss gradient is a
+    small difference of opposite silhouettes (a sideways move); ``bench/bench_depth.py``
+    tabulates bias, spread and time per ``boundary_spp``.
+    """
+    boundary_spp = max(1, spp // 4) if boundary_spp is None else boundary_spp
+    if spp < 1 or boundary_spp < 1:
+        raise ValueError(f"spp and boundary_spp must be >= 1, got {spp} and {boundary_spp}")
+    return _RenderDepthCoverage.apply(projector, list(cameras), int(spp), int(boundary_spp), int(seed), vertices)
+
+
 def normalized_object_coordinates(position: torch.Tensor, mask: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
     """NOC: world positions (N, 3, H, W) mapped by the vertices' bounding box to [0, 1]³, 0 off the mask."""
     lo = vertices.min(0).values.reshape(1, 3, 1, 1)
@@ -195,8 +277,6 @@ def project_depth(vertices: torch.Tensor, faces: np.ndarray | torch.Tensor, came
     z, hit, normal, position = _ProjectFast.apply(projector, camera_table(cameras), width, height, vertices)
     noc = normalized_object_coordinates(position, hit, vertices)
     if silhouette_grad:
-        from ngp_mi.render.depth_projective import render_depth_coverage
-
         z, hit = render_depth_coverage(projector, vertices, cameras, spp=spp, boundary_spp=boundary_spp, seed=seed)
     return DepthMaps(depth=z, mask=hit, normal=normal, noc=noc)
 

@@ -45,7 +45,7 @@ _LANES_PER_LAUNCH = 1 << 22  # bounds the memory of render_views (64 views at 25
 
 def maps_to_tensors(maps: Mapping[str, np.ndarray]) -> dict[str, "torch.Tensor"]:
     """G-buffer maps (H, W) / (H, W, 3) as a batch of one NCHW torch tensor each (sharing memory)."""
-    import torch
+    import torch  # ~3 s to import: dataset workers, which never ask for tensors, go without it
 
     return {name: torch.from_numpy(m).permute(2, 0, 1)[None] if m.ndim == 3 else torch.from_numpy(m)[None, None]
             for name, m in maps.items()}

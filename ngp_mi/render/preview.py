@@ -10,7 +10,7 @@ from ngp_mi.camera import Camera
 from ngp_mi.geometry.families import ProceduralObject
 from ngp_mi.geometry.mesh import TriangleMesh
 from ngp_mi.lights import Light, overhead_rig
-from ngp_mi.render.scene import build_scene, diffuse_bsdf, mesh_parts_to_mitsuba, render, set_sensor_camera
+from ngp_mi.render.scene import build_scene, diffuse_bsdf, mesh_parts_to_mitsuba, render
 from ngp_mi.viz import contact_sheet, to_uint8
 
 
@@ -26,7 +26,6 @@ def preview_sheet(objects: Sequence[ProceduralObject], camera: Camera, lights: S
     tiles = []
     for obj in objects:
         scene = build_scene(camera, object_shapes(obj), lights, {"type": "path", "max_depth": 4}, spp=spp)
-        set_sensor_camera(scene.sensors()[0], camera)
         tiles.append(to_uint8(render(scene, seed=obj.seed)))
     return contact_sheet(tiles, [obj.id for obj in objects], columns=columns)
 
@@ -37,5 +36,4 @@ def mesh_preview(mesh: TriangleMesh, camera: Camera, lights: Sequence[Light] | N
     lights = overhead_rig() if lights is None else lights
     shapes = mesh_parts_to_mitsuba(mesh, default_bsdf=diffuse_bsdf(albedo))
     scene = build_scene(camera, shapes, lights, {"type": "path", "max_depth": 3}, spp=spp)
-    set_sensor_camera(scene.sensors()[0], camera)
     return to_uint8(render(scene, seed=seed))

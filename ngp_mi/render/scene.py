@@ -14,6 +14,7 @@ from ngp_mi import backend
 from ngp_mi.camera import Camera
 from ngp_mi.geometry.mesh import TriangleMesh
 from ngp_mi.lights import Light, lights_to_mitsuba
+from ngp_mi.render import integrators
 
 MESH_POSITIONS = "vertex_positions"
 MESH_FACES = "faces"
@@ -58,8 +59,14 @@ def mesh_parts_to_mitsuba(mesh: TriangleMesh, bsdfs: Mapping[int, Mapping[str, A
 def build_scene(camera: Camera, shapes: Mapping[str, Any], lights: Iterable[Light] = (),
                 integrator: Mapping[str, Any] | None = None, spp: int = 1, rfilter: str = "box",
                 seed: int = 0) -> Any:
-    """Load a Mitsuba scene: one sensor from ``camera``, the given shapes and emitters."""
+    """Load a Mitsuba scene: one sensor at ``camera``, the given shapes and emitters.
+
+    The sensor is placed through :func:`set_sensor_camera`, so its pose is a kernel parameter from
+    the first render on: moving it to another view of the same resolution reuses the compiled
+    kernel. ``integrator`` may name the project's own integrators (:mod:`ngp_mi.render.integrators`).
+    """
     mi = backend.mitsuba()
+    integrators.register()
     scene: dict[str, Any] = {
         "type": "scene",
         "integrator": dict(integrator or {"type": "path", "max_depth": 3}),
@@ -67,7 +74,9 @@ def build_scene(camera: Camera, shapes: Mapping[str, Any], lights: Iterable[Ligh
         **shapes,
         **lights_to_mitsuba(lights),
     }
-    return mi.load_dict(scene)
+    loaded = mi.load_dict(scene)
+    set_sensor_camera(loaded.sensors()[0], camera)
+    return loaded
 
 
 def set_sensor_camera(sensor: Any, camera: Camera) -> None:

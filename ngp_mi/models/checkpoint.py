@@ -8,35 +8,27 @@ name and renamed, so a job killed mid-write leaves either the previous checkpoin
 
 from __future__ import annotations
 
-import os
 import shutil
-import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
+
+from ngp_mi.atomic import atomic_path
 
 
 def save_checkpoint(root: str | Path, step: int, modules: dict[str, torch.nn.Module], state: dict[str, Any],
                     keep: int = 3) -> Path:
     """Write ``root/ckpt-<step>``; keep the newest ``keep`` checkpoints."""
     root = Path(root)
-    root.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=".ckpt-", dir=root))
-    try:
+    final = root / f"ckpt-{step:08d}"
+    with atomic_path(final, directory=True) as tmp:
         tensors = {f"{name}.{key}": value.detach().contiguous().cpu()
                    for name, module in modules.items() for key, value in module.state_dict().items()}
         save_file(tensors, tmp / "weights.safetensors")
         torch.save({**state, "step": step}, tmp / "state.pt")
-        final = root / f"ckpt-{step:08d}"
-        if final.exists():
-            shutil.rmtree(final)
-        os.replace(tmp, final)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp)
     for old in list_checkpoints(root)[:-keep]:
         shutil.rmtree(old)
     return final
@@ -69,3 +61,27 @@ def load_checkpoint(path: str | Path, modules: dict[str, torch.nn.Module]) -> di
             raise ValueError(f"{path}: checkpoint does not fit module {name!r} "
                              f"(missing {list(missing)[:3]}, unexpected {list(unexpected)[:3]})")
     return torch.load(path / "state.pt", map_location="cpu", weights_only=True)  # optimisers move state to their parameters
+
+
+def newest_checkpoint(run: str | Path) -> Path:
+    """The newest complete checkpoint of a training run; the error names the run."""
+    checkpoints = list_checkpoints(run)
+    if not checkpoints:
+        raise ValueError(f"{run}: no checkpoint found (ckpt-*/weights.safetensors + state.pt)")
+    return checkpoints[-1]
+
+
+def read_state(path: str | Path) -> dict[str, Any]:
+    """A checkpoint's ``state.pt`` (plain values only: ``weights_only``), on the CPU."""
+    return torch.load(Path(path) / "state.pt", map_location="cpu", weights_only=True)
+
+
+def load_newest(run: str | Path, build: Callable[[dict[str, Any]], Any]) -> Any:
+    """The model ``build(state)`` makes from the state of the run's newest checkpoint, with that
+    checkpoint's weights loaded into its ``networks()``; None when ``build`` returns None (the run
+    has no such model)."""
+    path = newest_checkpoint(run)
+    model = build(read_state(path))
+    if model is not None:
+        load_checkpoint(path, model.networks())
+    return model

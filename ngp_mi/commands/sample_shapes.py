@@ -12,52 +12,34 @@ field evaluations, extraction time) and ``report.md``.
 
 from __future__ import annotations
 
-import json
-import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
+from tqdm import tqdm
 
+from ngp_mi.atomic import atomic_path, write_json, write_text
 from ngp_mi.camera import Camera
+from ngp_mi.models.shape import ShapeModel
+from ngp_mi.pipeline import latent, slerp
+from ngp_mi.render.preview import mesh_preview
 from ngp_mi.viz import contact_sheet, save_png
-
-
-def latent(seed: int, z_dim: int) -> torch.Tensor:
-    """z_s ~ N(0, I) of one seed."""
-    return torch.randn(z_dim, generator=torch.Generator().manual_seed(seed))
-
-
-def slerp(a: torch.Tensor, b: torch.Tensor, t: float) -> torch.Tensor:
-    """Spherical interpolation between latents (linear when they are parallel)."""
-    cos = torch.dot(a, b) / (a.norm() * b.norm()).clamp_min(1e-12)
-    omega = torch.arccos(cos.clamp(-1.0, 1.0))
-    if float(omega) < 1e-6:
-        return (1 - t) * a + t * b
-    return (torch.sin((1 - t) * omega) * a + torch.sin(t * omega) * b) / torch.sin(omega)
 
 
 def write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
     """OBJ or PLY (by suffix) through trimesh, written atomically."""
-    import trimesh
+    import trimesh  # over a second to import: only when a mesh is written
 
-    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
-    trimesh.Trimesh(vertices, faces, process=False).export(str(tmp))
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        trimesh.Trimesh(vertices, faces, process=False).export(str(tmp))
 
 
 def sample_shapes(run: str | Path, out: str | Path, num: int = 16, seed: int = 0, resolution: int = 128,
                   coarse: int = 32, fmt: str = "obj", interpolate: tuple[int, int] | None = None, steps: int = 8,
                   preview_resolution: int = 128, spp: int = 16, device: str = "cpu") -> dict[str, Any]:
-    from tqdm import tqdm
-
-    from ngp_mi.render.preview import mesh_preview
-    from ngp_mi.train_shape import load_shape_model
-
     if fmt not in ("obj", "ply"):
         raise ValueError(f"sample-shapes: --format must be obj or ply, got {fmt!r}")
-    model = load_shape_model(run, device)
+    model = ShapeModel.from_run(run, device)
     z_dim = model.config.z_dim
     if interpolate is not None:
         a, b = latent(interpolate[0], z_dim), latent(interpolate[1], z_dim)
@@ -86,7 +68,7 @@ def sample_shapes(run: str | Path, out: str | Path, num: int = 16, seed: int = 0
     summary = {"run": str(run), "resolution": resolution, "coarse": coarse, "interpolate": interpolate,
                "shapes": records, "empty": sum(r["file"] is None for r in records),
                "median_seconds": float(np.median([r["seconds"] for r in records]))}
-    (out / "samples.json").write_text(json.dumps(summary, indent=1) + "\n")
+    write_json(out / "samples.json", summary)
     lines = [f"# Shapes sampled from `{run}`", "",
              f"{len(records)} shapes at {resolution}³ (coarse-to-fine from {coarse}³); "
              f"{summary['empty']} empty; median extraction {summary['median_seconds']:.2f} s.", "",
@@ -94,5 +76,5 @@ def sample_shapes(run: str | Path, out: str | Path, num: int = 16, seed: int = 0
              "|---|---|---|---|---|---|"]
     lines += [f"| {r['index']} | {r['label']} | {r['file'] or '(empty)'} | {r.get('faces', 0)} | "
               f"{r['evaluated']} ({r['dense']}) | {r['seconds']} |" for r in records]
-    (out / "report.md").write_text("\n".join(lines) + "\n")
+    write_text(out / "report.md", "\n".join(lines) + "\n")
     return summary

@@ -7,8 +7,12 @@ import statistics
 import time
 
 import numpy as np
+import torch
 
 from ngp_mi import __version__, backend
+from ngp_mi.camera import Camera
+from ngp_mi.lights import DirectionalLight
+from ngp_mi.render.scene import build_scene, diffuse_bsdf, render
 
 
 def test_render(resolution: int = 64, repeats: int = 5) -> tuple[float, float]:
@@ -16,10 +20,6 @@ def test_render(resolution: int = 64, repeats: int = 5) -> tuple[float, float]:
 
     Raises ``RuntimeError`` when the image is wrong: non-finite, an unlit sphere or a lit background.
     """
-    from ngp_mi.camera import Camera
-    from ngp_mi.lights import DirectionalLight
-    from ngp_mi.render.scene import build_scene, diffuse_bsdf, render
-
     mi = backend.mitsuba()
     camera = Camera.orbit(0.0, 0.0, resolution)
     shapes = {"sphere": {"type": "sphere", "radius": 0.5, "bsdf": mi.load_dict(diffuse_bsdf(0.5))}}
@@ -39,8 +39,6 @@ def test_render(resolution: int = 64, repeats: int = 5) -> tuple[float, float]:
 
 def run_doctor(log=print) -> int:
     """Print the report; return the exit code (0 only if rendering works)."""
-    import torch
-
     log(f"ngp-mi    {__version__}")
     log(f"python    {platform.python_version()} ({platform.machine()}, {platform.system()})")
     log(f"torch     {torch.__version__} (threads {torch.get_num_threads()}, cuda {torch.cuda.is_available()})")

@@ -34,5 +34,3 @@ class DirectUnshadowedIntegrator(mi.SamplingIntegrator):
             radiance += dr.select(valid & (ds.pdf > 0), value * irradiance, 0.0)
         return radiance, valid, []
 
-
-mi.register_integrator("direct_unshadowed", lambda props: DirectUnshadowedIntegrator(props))

@@ -1,0 +1,231 @@
+"""``ngp-mi train maps --config train/maps_<preset>.toml``: the map networks, then G_sp^real.
+
+The recipe (TOML; :mod:`ngp_mi.training.recipe`) has these tables:
+
+* ``[data]`` (:class:`MapsData`) — ``maps`` and ``depth``: ``render-dataset`` folders of real
+  reflectance maps and of the depth maps to decorate; when absent, a dataset of ``source``
+  (``num_shapes`` × ``views`` at ``resolution``) is rendered into ``cache_dir`` first (and reused).
+  With ``coarse_shapes`` (a ``train shape`` run), the depth maps are those of the same shapes
+  reconstructed by its autoencoder (``<cache_dir>-coarse``, marching cubes at
+  ``coarse_resolution``): coarse shapes, as NGP decorates.
+* ``[model]`` — fields of :class:`~ngp_mi.models.maps.MapsConfig`.
+* ``[train]`` (:class:`MapsTrain`) — iterations, batch size, seed, output folder, how often to
+  log, write image grids and checkpoints, and the device (``"auto"``: CUDA when available).
+* ``[specular]`` (optional; :class:`SpecularStage` and the fields of
+  :class:`~ngp_mi.models.specular.SpecularConfig`) — the second stage, the realistic specular
+  generator G_sp^real, trained for ``iterations`` more steps with the map networks fixed, as the
+  paper orders it: ``real`` is a folder of real images (photographs or a ``render-dataset`` folder
+  with path-traced images); when absent, ``num_shapes`` × ``views`` path-traced images
+  (``real_spp``) of ``[data] source`` are rendered into ``<cache_dir>-real`` with other seeds than
+  the maps (the domains stay unpaired). A run whose checkpoints predate the table resumes with its
+  map networks and starts the stage.
+
+Outputs under ``out``: ``recipe.json`` (the recipe with its command-line overrides), ``log.jsonl``
+(losses per logged step; TensorBoard too if installed), ``images/step-*.png`` (every intermediate
+map), ``ckpt-*`` (:mod:`ngp_mi.models.checkpoint`). Runs resume exactly (:mod:`ngp_mi.training.loop`).
+
+Several processes (``torchrun --nproc_per_node N -m ngp_mi.cli train maps …``, gloo on CPU, NCCL
+on GPUs) split every batch by rank and average gradients with ``torch.distributed.all_reduce``
+before each optimiser step; rank 0 logs and checkpoints.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from ngp_mi.data.datasets import DepthDataset, ImageFolderDataset, ReflectanceMapDataset
+from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
+from ngp_mi.models.maps import MapsConfig, MapsModel
+from ngp_mi.models.shape import CoarseShapes
+from ngp_mi.models.specular import SpecularConfig, SpecularModel
+from ngp_mi.training import loop
+from ngp_mi.training.recipe import from_table, out_override, positive, read_tables, record
+from ngp_mi.viz import contact_sheet, save_png
+
+TABLES = ("data", "model", "train", "specular")
+
+
+@dataclasses.dataclass(frozen=True)
+class MapsData:
+    source: str = "chair"
+    num_shapes: int = 16
+    views: int = 8
+    resolution: int = 64
+    seed: int = 0
+    cache_dir: str = "outputs/data/maps"
+    maps: str | None = None    # a render-dataset folder of reflectance maps (with ``depth``: no rendering)
+    depth: str | None = None   # a render-dataset folder of the depth maps to decorate
+    coarse_shapes: str | None = None  # a `train shape` run: decorate its autoencoder's coarse shapes
+    coarse_resolution: int = 64
+
+    def __post_init__(self) -> None:
+        positive(self, "num_shapes", "views", "resolution", "coarse_resolution")
+        if (self.maps is None) != (self.depth is None):
+            raise ValueError("maps and depth go together (two render-dataset folders), or neither")
+
+
+@dataclasses.dataclass(frozen=True)
+class MapsTrain:
+    iterations: int
+    batch_size: int
+    seed: int = 0
+    out: str = "outputs/train/maps"
+    log_every: int = 10
+    image_every: int = 100
+    checkpoint_every: int = 500
+    device: str = "auto"
+
+    def __post_init__(self) -> None:
+        positive(self, "iterations", "batch_size", "log_every", "image_every", "checkpoint_every")
+
+
+@dataclasses.dataclass(frozen=True)
+class SpecularStage:
+    iterations: int
+    real: str | None = None  # a folder of real images; rendered from [data] source when absent
+    real_spp: int = 64
+    num_shapes: int = 16
+    views: int = 8
+
+    def __post_init__(self) -> None:
+        positive(self, "iterations", "real_spp", "num_shapes", "views")
+
+
+@dataclasses.dataclass(frozen=True)
+class MapsRecipe:
+    data: MapsData
+    model: MapsConfig
+    train: MapsTrain
+    stage: SpecularStage | None
+    specular: SpecularConfig | None
+    tables: dict[str, Any]  # as read, overrides applied: stored in checkpoints and recipe.json
+
+    @classmethod
+    def read(cls, path: str | Path, overrides: Sequence[str] = ()) -> "MapsRecipe":
+        tables = read_tables(path, overrides, required=("data", "model", "train"), known=TABLES)
+        stage, specular = from_table(tables, "specular", path, SpecularStage, SpecularConfig) \
+            if "specular" in tables else (None, None)
+        return cls(*from_table(tables, "data", path, MapsData), *from_table(tables, "model", path, MapsConfig),
+                   *from_table(tables, "train", path, MapsTrain), stage, specular, tables)
+
+
+def prepare_data(data: MapsData, rank: int) -> tuple[Path, Path]:
+    """The (maps, depth) dataset folders, rendering a cached one from ``source`` when not given."""
+    if data.maps is not None and data.depth is not None:
+        return Path(data.maps), Path(data.depth)
+    cache = Path(data.cache_dir)
+    depth_cache = Path(f"{cache}-coarse") if data.coarse_shapes else cache
+    if rank == 0:
+        config = DatasetConfig(source=data.source, num_shapes=data.num_shapes, views=data.views,
+                               resolution=data.resolution, channels=("depth", "normal", "albedo", "noc", "mask"),
+                               seed=data.seed)
+        render_dataset(config, cache, progress=False)
+        if data.coarse_shapes:  # the paper decorates G_shape's coarse shapes, not the detailed ones
+            if not Path(data.coarse_shapes).is_dir():
+                raise ValueError(f"[data] coarse_shapes = {data.coarse_shapes!r}: no such `train shape` run "
+                                 "(train it first: ngp-mi train shape --config train/shape_cpu.toml)")
+            coarse = dataclasses.replace(config, channels=("depth", "mask"), coarse_shapes=data.coarse_shapes,
+                                         coarse_resolution=data.coarse_resolution)
+            render_dataset(coarse, depth_cache, progress=False,
+                           reconstruct=CoarseShapes(data.coarse_shapes, data.coarse_resolution))
+    loop.barrier()
+    return cache, depth_cache
+
+
+def prepare_real_images(data: MapsData, stage: SpecularStage, rank: int) -> Path:
+    """The real-image folder of the specular stage, rendering path-traced images when not given."""
+    if stage.real is not None:
+        return Path(stage.real)
+    cache = Path(data.cache_dir + "-real")
+    if rank == 0:
+        render_dataset(DatasetConfig(source=data.source, num_shapes=stage.num_shapes, views=stage.views,
+                                     resolution=data.resolution, channels=("mask",), real_spp=stage.real_spp,
+                                     seed=data.seed + 1), cache, progress=False)
+    loop.barrier()
+    return cache
+
+
+def image_grid(visuals: dict[str, torch.Tensor]) -> np.ndarray:
+    """The first item of every visual (network range [−1, 1]) side by side, labelled."""
+    tiles = []
+    for tensor in visuals.values():
+        image = ((tensor[0].detach().float().cpu().clamp(-1, 1) + 1) / 2).permute(1, 2, 0).numpy()
+        image = np.repeat(image, 3, -1) if image.shape[-1] == 1 else image
+        tiles.append((image * 255).round().astype(np.uint8))
+    return contact_sheet(tiles, list(visuals), columns=len(tiles))
+
+
+def train_maps(config_path: str | Path, log=print, out: str | Path | None = None, overrides: Sequence[str] = ()) -> Path:
+    """Train (or resume training) as the recipe says; ``out`` replaces ``[train] out``. Returns the output folder."""
+    overrides = [*overrides, *([out_override(out)] if out else [])]
+    recipe = MapsRecipe.read(config_path, overrides)
+    train = recipe.train
+    device, rank, world = loop.start_processes(train.device)
+    out = Path(train.out)
+    maps_root, depth_root = prepare_data(recipe.data, rank)
+    maps_batches = loop.SeededBatches(ReflectanceMapDataset(maps_root), train.batch_size, train.seed, rank, world)
+    depth_batches = loop.SeededBatches(DepthDataset(depth_root), train.batch_size, train.seed + 10 ** 6, rank, world)
+
+    torch.manual_seed(train.seed)  # identical initial weights on every rank
+    model = MapsModel(recipe.model).to(device)  # in place: the optimisers keep their parameters
+    specular, real_batches = None, None
+    if recipe.specular is not None:
+        specular = SpecularModel(recipe.specular).to(device)
+        real_root = prepare_real_images(recipe.data, recipe.stage, rank)
+        real_batches = loop.SeededBatches(ImageFolderDataset(real_root, size=recipe.data.resolution, linear=True),
+                                          train.batch_size, train.seed + 2 * 10 ** 6, rank, world)
+    models = [model] + ([specular] if specular is not None else [])
+    # A checkpoint from before the [specular] table holds the map networks only: the stage starts fresh.
+    step, resumed_from = loop.resume(out, [model], optional=models[1:])
+    if rank == 0:
+        if resumed_from is not None:
+            log(f"train maps: resuming from {resumed_from} (step {step})")
+        log(f"train maps: {world} process(es) on {device}")
+        out.mkdir(parents=True, exist_ok=True)
+        record(out, config_path, overrides, recipe.tables)
+    if world > 1:
+        for m in models:
+            m.gradient_hook = loop.average_gradients
+
+    maps_iterations = train.iterations
+    iterations = maps_iterations + (recipe.stage.iterations if specular is not None else 0)
+    log_file = loop.JsonLog(out, step) if rank == 0 else None
+    writer = loop.tensorboard(out) if rank == 0 else None
+    bar = tqdm(total=iterations, initial=step, unit="it", disable=rank != 0, desc="train maps")
+    start, first = time.perf_counter(), step
+    while step < iterations:
+        loop.reseed(train.seed, step, world, rank)
+        depth_batch = loop.to_device(depth_batches(step), device)
+        if step < maps_iterations:
+            stage, visuals = "maps", model
+            losses = model.optimize(depth_batch, loop.to_device(maps_batches(step), device))
+        else:
+            stage, visuals = "specular", specular
+            losses = specular.optimize(model, depth_batch, real_batches(step).to(device))
+        step += 1
+        bar.update(1)
+        if log_file is None:
+            continue
+        last = step == iterations or step == maps_iterations
+        if step % train.log_every == 0 or last:
+            log_file.write({"step": step, "stage": stage, "time": round(time.perf_counter() - start, 3),
+                            "it_per_s": round((step - first) / (time.perf_counter() - start), 3), "world": world,
+                            **losses})
+            if writer is not None:
+                for key, value in losses.items():
+                    writer.add_scalar(f"{stage}/{key}", value, step)
+        if step % train.image_every == 0 or last:
+            save_png(out / "images" / f"step-{step:08d}.png", image_grid(visuals.visuals))
+        if step % train.checkpoint_every == 0 or last:
+            loop.save(out, step, models, recipe.tables)
+    bar.close()
+    if world > 1:
+        loop.check_in_sync(models, log_file, step, world)
+    return out
