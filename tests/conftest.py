@@ -1,10 +1,13 @@
-"""Shared fixtures: the initialised backend, and JIT clean-up between test modules."""
+"""Shared fixtures: the initialised backend, JIT clean-up between test modules, and tiny trained runs."""
 
 from __future__ import annotations
 
 import pytest
+from helpers import maps_recipe, shape_recipe
 
 from ngp_mi import backend
+from ngp_mi.training.maps import train_maps
+from ngp_mi.training.shape import train_shape
 
 
 @pytest.fixture(scope="session")
@@ -17,3 +20,16 @@ def mi():
 def _release_jit_memory():
     yield
     backend.jit_cleanup()
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory):
+    """A `train shape` run of the tiny recipe (trained once per session) and its folder."""
+    tmp = tmp_path_factory.mktemp("shape")
+    return train_shape(shape_recipe(tmp, "run"), log=lambda *_: None), tmp
+
+
+@pytest.fixture(scope="session")
+def tiny_maps_run(tmp_path_factory):
+    """A `train maps` run of the tiny recipe cut to 2 map steps (+ its 3 G_sp^real steps), trained once."""
+    return train_maps(maps_recipe(tmp_path_factory.mktemp("maps"), "run", iterations=2), log=lambda *_: None)

@@ -1,10 +1,21 @@
-"""Independent reference computations shared by the tests (no Mitsuba inside), and a JIT probe."""
+"""What several test modules share: independent reference computations (no Mitsuba inside), a JIT probe,
+and random inputs of the shading operator with a backend-agreement check."""
+
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
+import torch
 import trimesh
 
 from ngp_mi.camera import Camera
 from ngp_mi.geometry.mesh import TriangleMesh
+from ngp_mi.render.shading import CameraLights, shade
+
+ROOT = Path(__file__).resolve().parent.parent  # the repository
+MAPS_TINY = ROOT / "train" / "maps_tiny.toml"
+SHAPE_TINY = ROOT / "train" / "shape_tiny.toml"
 
 
 def trimesh_depth(mesh: TriangleMesh, camera: Camera) -> np.ndarray:
@@ -51,3 +62,103 @@ def compiled_kernels(fn) -> tuple[list[dict], list[dict]]:
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
     return launched, [k for k in launched if not k["cache_hit"]]
+
+
+# ----------------------------------------------------------------------------- shading inputs
+
+BACKENDS = ("drjit", "torch")
+
+
+def random_inputs(n=2, h=5, w=6, dtype=torch.float64, seed=0, requires_grad=True):
+    """Maps, per-batch camera-space lights (2 directional + 1 point) and cameras, all leaves."""
+    g = torch.Generator().manual_seed(seed)
+    normal = torch.randn(n, 3, h, w, generator=g, dtype=dtype)
+    normal[:, 2] -= 1.5  # mostly facing the camera (camera space: -z towards the viewer)
+    x = {
+        "normal": normal,
+        "albedo": torch.rand(n, 3, h, w, generator=g, dtype=dtype),
+        "mask": (torch.rand(n, 1, h, w, generator=g, dtype=dtype) > 0.2).to(dtype),
+        "depth": 1.5 + torch.rand(n, 1, h, w, generator=g, dtype=dtype),
+        "alpha": 1.0 + 8 * torch.rand(n, 1, h, w, generator=g, dtype=dtype),
+        "spec_albedo": torch.rand(n, 3, h, w, generator=g, dtype=dtype),
+        "directions": torch.tensor([[[0.3, -0.8, -0.5], [-0.6, -0.4, -0.7]]], dtype=dtype).repeat(n, 1, 1)
+        + 0.1 * torch.randn(n, 2, 3, generator=g, dtype=dtype),
+        "irradiance": 0.5 + torch.rand(n, 2, 3, generator=g, dtype=dtype),
+        "positions": torch.tensor([[[0.4, -1.0, 0.8]]], dtype=dtype).repeat(n, 1, 1),
+        "intensity": 1.0 + torch.rand(n, 1, 3, generator=g, dtype=dtype),
+    }
+    for t in x.values():
+        t.requires_grad_(requires_grad)
+    cameras = [Camera.orbit(10.0 * i, 15.0 * i, (w, h)) for i in range(n)]
+    return x, cameras
+
+
+def shade_inputs(x, cameras, backend, mode="blinn_phong", view="per_pixel"):
+    lights = CameraLights(x["directions"], x["irradiance"], x["positions"], x["intensity"])
+    return shade(x["normal"], x["albedo"], x["mask"], lights, cameras, depth=x["depth"], alpha=x["alpha"],
+                 spec_albedo=x["spec_albedo"], mode=mode, view=view, backend=backend)
+
+
+def value_and_grads(backend, mode="blinn_phong", view="per_pixel", **inputs):
+    """Shade float32 random inputs, backpropagate a weighted sum; return the image and every input's gradient."""
+    x, cams = random_inputs(dtype=torch.float32, **inputs)
+    out = shade_inputs(x, cams, backend, mode, view)
+    (out * torch.linspace(-1, 2, out.numel()).reshape(out.shape)).sum().backward()
+    return out.detach(), {k: v.grad for k, v in x.items()}
+
+
+def assert_backends_agree(mode="blinn_phong", view="per_pixel", **inputs):
+    """Values to 1e-5, gradients to 1e-5 of their largest magnitude (at least 1)."""
+    (out, grads), (ref, ref_grads) = (value_and_grads(backend, mode, view, **inputs) for backend in BACKENDS)
+    torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5)
+    for name, g in ref_grads.items():
+        if g is None:
+            assert grads[name] is None or not grads[name].any()
+            continue
+        torch.testing.assert_close(grads[name], g, rtol=1e-5, atol=1e-5 * max(1.0, g.abs().max().item()), msg=name)
+
+
+def run_cli(*args):
+    """``ngp-mi ARGS`` in a new process (what a user runs); the completed process."""
+    return subprocess.run([sys.executable, "-m", "ngp_mi.cli", *args], capture_output=True, text=True, timeout=300)
+
+
+# ----------------------------------------------------------------------------- tiny training runs
+
+def tiny_recipe(preset: Path, tmp_path: Path, name: str, file_name: str, **values) -> Path:
+    """A copy of a tiny preset in ``tmp_path`` (data cached in ``tmp_path/data``, outputs in
+    ``tmp_path/name``) with the given keys' values replaced (TOML text: strings quoted)."""
+    stage = preset.stem.split("_")[0]
+    text = preset.read_text().replace(f'cache_dir = "outputs/data/{stage}_tiny"', f'cache_dir = "{tmp_path / "data"}"')
+    text = text.replace(f'out = "outputs/train/{stage}_tiny"', f'out = "{tmp_path / name}"')
+    for key, value in values.items():
+        text = text.replace(f"\n{key} = ", f"\n{key} = {value}\n# ", 1)
+    path = tmp_path / file_name
+    path.write_text(text)
+    return path
+
+
+def maps_recipe(tmp_path, name, iterations=6, **train):
+    """train/maps_tiny.toml with ``iterations`` map steps and [train] values replaced."""
+    return tiny_recipe(MAPS_TINY, tmp_path, name, f"{name}-{iterations}.toml", iterations=iterations, **train)
+
+
+def shape_recipe(tmp_path, name, **train):
+    """train/shape_tiny.toml with [train] values replaced."""
+    return tiny_recipe(SHAPE_TINY, tmp_path, name, f"{name}.toml", **train)
+
+
+def volume(vertices, faces):
+    """Enclosed volume of a closed, outward-oriented mesh (divergence theorem)."""
+    t = vertices[torch.as_tensor(np.asarray(faces), dtype=torch.long)]
+    return (t[:, 0] * torch.linalg.cross(t[:, 1], t[:, 2])).sum() / 6
+
+
+def worker_job(worker: int, progress, fail: int = -1) -> int:
+    """A job for :func:`ngp_mi.data.workers.run_workers` tests (importable by spawned processes): 4
+    items, 1 done before; fails in worker ``fail``."""
+    progress.start(4, 1)
+    if worker == fail:
+        raise ValueError(f"worker {worker} was told to fail")
+    progress.update(3)
+    return 10 * worker

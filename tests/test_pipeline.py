@@ -1,5 +1,6 @@
 """NGP inference (ngp_mi/pipeline.py): the variants' algebra and `ngp-mi generate` end to end."""
 
+import dataclasses
 import json
 import math
 
@@ -11,19 +12,17 @@ import trimesh
 from ngp_mi.camera import Camera
 from ngp_mi.cli import main
 from ngp_mi.lights import DirectionalLight, overhead_rig, save_lights
+from ngp_mi.models.maps import MapsConfig, MapsModel
+from ngp_mi.models.specular import SpecularConfig, SpecularModel
 from ngp_mi.pipeline import NGP, ngp_image
+from ngp_mi.render.depth import project_depth
+from ngp_mi.render.shading import PAPER_CONSTANTS, CameraLights, Constants, shade
+from ngp_mi.training.loop import save
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
-    from ngp_mi.training.maps import train_maps
-    from ngp_mi.training.shape import train_shape
-    from test_shape import tiny_config
-    from test_train_maps import config
-
-    maps_tmp, shape_tmp = tmp_path_factory.mktemp("maps"), tmp_path_factory.mktemp("shape")
-    return train_maps(config(maps_tmp, "maps", iterations=2), log=lambda *_: None), train_shape(
-        tiny_config(shape_tmp, "shape"), log=lambda *_: None)
+def runs(tiny_maps_run, tiny_run):
+    return tiny_maps_run, tiny_run[0]
 
 
 @pytest.fixture(scope="module")
@@ -84,3 +83,27 @@ def test_generate_writes_images_sheet_and_report(runs, box_view, tmp_path, capsy
     assert [r["shape"] for r in json.loads((tmp_path / "m" / "generate.json").read_text())["images"]] == ["mesh"]
     assert main(["generate", "--maps-run", str(maps_run), "--out", str(tmp_path / "x")]) != 0
     assert "--shape-run" in capsys.readouterr().err
+
+
+def test_a_model_trained_with_car_constants_is_shaded_with_them_everywhere(tmp_path):
+    """k_d / k_s / α are the trained model's: R_diff, R_BP and G_sp^real's input all use k_d 0.6, k_s 0.4."""
+    torch.manual_seed(1)
+    tiny = MapsConfig(ngf=8, blocks=1, nef=8, ndf=8, rf_maps=(16, 34), rf_albedo=(16,))
+    car = dataclasses.replace(tiny, **dataclasses.asdict(PAPER_CONSTANTS["car"]))
+    save(tmp_path / "car", 1, [MapsModel(car), SpecularModel(SpecularConfig(ngf=8, blocks=1, ndf=8, rf_image=(16,)))],
+         {})
+    maps, specular = MapsModel.from_run(tmp_path / "car"), SpecularModel.from_run(tmp_path / "car")
+    assert maps.config.constants == Constants(0.6, 0.4, 4.0)
+    camera = Camera.orbit(10.0, 30.0, 32)
+    box = trimesh.creation.box(extents=(0.6, 0.5, 0.4))
+    projected = project_depth(torch.as_tensor(box.vertices, dtype=torch.float32), box.faces, camera)
+    z, lights = torch.zeros(1, maps.config.latent_dim), overhead_rig()
+    args = (projected.depth, projected.mask, camera, box.bounds, z, lights)
+    no_sp, bp, full = (ngp_image(maps, specular, *args, variant=v) for v in ("no_sp", "ngp_bp", "ngp"))
+    n, a, m = no_sp["normal"], no_sp["albedo"], projected.mask
+    torch.testing.assert_close(no_sp["image"], shade(n, a, m, lights, camera, mode="diffuse", k_d=0.6) / math.pi)
+    torch.testing.assert_close(bp["image"], shade(n, a, m, lights, camera, k_d=0.6, k_s=0.4, alpha=4.0) / math.pi)
+    base = 2 * shade(n, a, m, CameraLights.from_lights(lights, [camera]), [camera], k_d=0.6, mode="diffuse") - 1
+    torch.testing.assert_close(full["specular"], specular.specular(n, base, m))
+    torch.testing.assert_close(full["image"], no_sp["image"] + full["specular"])
+    assert not torch.allclose(no_sp["image"], shade(n, a, m, lights, camera, mode="diffuse", k_d=0.8) / math.pi)

@@ -8,22 +8,11 @@ from pathlib import Path
 
 import pytest
 import torch
-from ngp_mi.models.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint
-from ngp_mi.training.maps import train_maps
+from helpers import MAPS_TINY, maps_recipe
 from safetensors.torch import load_file
 
-TINY = Path(__file__).resolve().parent.parent / "train" / "maps_tiny.toml"
-
-
-def config(tmp_path, name, iterations=6, **train):
-    text = TINY.read_text().replace('cache_dir = "outputs/data/maps_tiny"', f'cache_dir = "{tmp_path / "data"}"')
-    text = text.replace('out = "outputs/train/maps_tiny"', f'out = "{tmp_path / name}"')
-    text = text.replace("iterations = 6", f"iterations = {iterations}")
-    for key, value in train.items():
-        text = text.replace(f"{key} = ", f"{key} = {value}\n# ", 1)
-    path = tmp_path / f"{name}-{iterations}.toml"
-    path.write_text(text)
-    return path
+from ngp_mi.models.checkpoint import list_checkpoints
+from ngp_mi.training.maps import train_maps
 
 
 def weights(run: Path) -> dict:
@@ -33,7 +22,7 @@ def weights(run: Path) -> dict:
 def test_outputs_and_exact_resume(tmp_path):
     # 6 map steps, then 3 steps of the G_sp^real stage. Bitwise exactness holds on the CPU; CUDA's
     # atomic reductions (cuDNN, Dr.Jit's scatter-adds) reorder sums.
-    straight = train_maps(config(tmp_path, "straight", device='"cpu"'), log=lambda *_: None)
+    straight = train_maps(maps_recipe(tmp_path, "straight", device='"cpu"'), log=lambda *_: None)
     records = [json.loads(line) for line in (straight / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in records] == list(range(1, 10))
     assert [r["stage"] for r in records] == ["maps"] * 6 + ["specular"] * 3
@@ -43,13 +32,13 @@ def test_outputs_and_exact_resume(tmp_path):
     assert {k.split(".")[0] for k in weights(straight)} >= {"G_n", "G_sp", "F_sp", "D_real", "D_dfr"}
 
     # killed after step 3 and resumed, killed again after step 7 (inside the specular stage) and resumed
-    text = config(tmp_path, "resumed", device='"cpu"').read_text()
+    text = maps_recipe(tmp_path, "resumed", device='"cpu"').read_text()
     for name, cut_text in (("cut-3", text[:text.index("[specular]")].replace("iterations = 6", "iterations = 3")),
                            ("cut-7", text.replace("iterations = 3", "iterations = 1"))):
         (tmp_path / f"{name}.toml").write_text(cut_text)
         train_maps(tmp_path / f"{name}.toml", log=lambda *_: None)
     assert list_checkpoints(tmp_path / "resumed")[-1].name == "ckpt-00000007"
-    resumed = train_maps(config(tmp_path, "resumed", device='"cpu"'), log=lambda *_: None)
+    resumed = train_maps(maps_recipe(tmp_path, "resumed", device='"cpu"'), log=lambda *_: None)
     a, b = weights(straight), weights(resumed)
     assert a.keys() == b.keys()
     for key in a:
@@ -57,12 +46,12 @@ def test_outputs_and_exact_resume(tmp_path):
 
 
 def test_a_maps_only_run_resumes_into_the_specular_stage(tmp_path):
-    text = config(tmp_path, "old", iterations=2, device='"cpu"').read_text()
+    text = maps_recipe(tmp_path, "old", iterations=2, device='"cpu"').read_text()
     maps_only = tmp_path / "maps-only.toml"
     maps_only.write_text(text[:text.index("[specular]")])
     run = train_maps(maps_only, log=lambda *_: None)
     assert "G_sp" not in {k.split(".")[0] for k in weights(run)}
-    train_maps(config(tmp_path, "old", iterations=2, device='"cpu"'), log=lambda *_: None)
+    train_maps(maps_recipe(tmp_path, "old", iterations=2, device='"cpu"'), log=lambda *_: None)
     records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert [r["stage"] for r in records] == ["maps"] * 2 + ["specular"] * 3
     assert "G_sp" in {k.split(".")[0] for k in weights(run)}
@@ -70,29 +59,14 @@ def test_a_maps_only_run_resumes_into_the_specular_stage(tmp_path):
 
 def test_config_errors_name_the_table_and_field(tmp_path):
     bad = tmp_path / "bad.toml"
-    bad.write_text(TINY.read_text().replace("real_spp = 8", "real_sp = 8"))
+    bad.write_text(MAPS_TINY.read_text().replace("real_spp = 8", "real_sp = 8"))
     with pytest.raises(ValueError, match=r"unknown \[specular\] field\(s\) \['real_sp'\]"):
         train_maps(bad, log=lambda *_: None)
 
 
-def test_checkpoints_are_atomic_and_load_without_code(tmp_path):
-    net = torch.nn.Linear(3, 2)
-    save_checkpoint(tmp_path, 5, {"net": net}, {"note": "x"})
-    (tmp_path / ".ckpt-crashed").mkdir()  # a write that was killed
-    (tmp_path / "ckpt-00000009").mkdir()  # an incomplete folder
-    assert [p.name for p in list_checkpoints(tmp_path)] == ["ckpt-00000005"]
-    state = torch.load(tmp_path / "ckpt-00000005" / "state.pt", weights_only=True)
-    assert state == {"note": "x", "step": 5}
-    other = torch.nn.Linear(3, 2)
-    load_checkpoint(tmp_path / "ckpt-00000005", {"net": other})
-    assert torch.equal(other.weight, net.weight)
-    with pytest.raises(ValueError, match="does not fit module 'net'"):
-        load_checkpoint(tmp_path / "ckpt-00000005", {"net": torch.nn.Linear(4, 2)})
-
-
 def test_two_processes_with_gloo_stay_in_sync(tmp_path):
-    cfg = config(tmp_path, "ddp", iterations=3, device='"cpu"')  # two CPU processes, gloo, on any machine
-    train_maps(config(tmp_path, "warm", iterations=1), log=lambda *_: None)  # render the data once
+    cfg = maps_recipe(tmp_path, "ddp", iterations=3, device='"cpu"')  # two CPU processes, gloo, on any machine
+    train_maps(maps_recipe(tmp_path, "warm", iterations=1), log=lambda *_: None)  # render the data once
     env = {**os.environ, "NGP_MI_THREADS": "1", "OMP_NUM_THREADS": "1"}
     done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
                            "29517", "-m", "ngp_mi.cli", "train", "maps", "--config", str(cfg)],

@@ -5,63 +5,12 @@ import math
 import numpy as np
 import pytest
 import torch
-from helpers import analytic_sphere, compiled_kernels, rss_mib
+from helpers import BACKENDS, analytic_sphere, assert_backends_agree, random_inputs, shade_inputs
 
 from ngp_mi.camera import Camera
 from ngp_mi.lights import DirectionalLight, PointLight, overhead_rig
 from ngp_mi.render.scene import build_scene, diffuse_bsdf, render
 from ngp_mi.render.shading import CameraLights, shade
-
-BACKENDS = ("drjit", "torch")
-
-
-def random_inputs(n=2, h=5, w=6, dtype=torch.float64, seed=0, requires_grad=True):
-    """Maps, per-batch camera-space lights (2 directional + 1 point) and cameras, all leaves."""
-    g = torch.Generator().manual_seed(seed)
-    normal = torch.randn(n, 3, h, w, generator=g, dtype=dtype)
-    normal[:, 2] -= 1.5  # mostly facing the camera (camera space: -z towards the viewer)
-    x = {
-        "normal": normal,
-        "albedo": torch.rand(n, 3, h, w, generator=g, dtype=dtype),
-        "mask": (torch.rand(n, 1, h, w, generator=g, dtype=dtype) > 0.2).to(dtype),
-        "depth": 1.5 + torch.rand(n, 1, h, w, generator=g, dtype=dtype),
-        "alpha": 1.0 + 8 * torch.rand(n, 1, h, w, generator=g, dtype=dtype),
-        "spec_albedo": torch.rand(n, 3, h, w, generator=g, dtype=dtype),
-        "directions": torch.tensor([[[0.3, -0.8, -0.5], [-0.6, -0.4, -0.7]]], dtype=dtype).repeat(n, 1, 1)
-        + 0.1 * torch.randn(n, 2, 3, generator=g, dtype=dtype),
-        "irradiance": 0.5 + torch.rand(n, 2, 3, generator=g, dtype=dtype),
-        "positions": torch.tensor([[[0.4, -1.0, 0.8]]], dtype=dtype).repeat(n, 1, 1),
-        "intensity": 1.0 + torch.rand(n, 1, 3, generator=g, dtype=dtype),
-    }
-    for t in x.values():
-        t.requires_grad_(requires_grad)
-    cameras = [Camera.orbit(10.0 * i, 15.0 * i, (w, h)) for i in range(n)]
-    return x, cameras
-
-
-def run(x, cameras, backend, mode="blinn_phong", view="per_pixel"):
-    lights = CameraLights(x["directions"], x["irradiance"], x["positions"], x["intensity"])
-    return shade(x["normal"], x["albedo"], x["mask"], lights, cameras, depth=x["depth"], alpha=x["alpha"],
-                 spec_albedo=x["spec_albedo"], mode=mode, view=view, backend=backend)
-
-
-def value_and_grads(backend, mode="blinn_phong", view="per_pixel", **inputs):
-    """Shade float32 random inputs, backpropagate a weighted sum; return the image and every input's gradient."""
-    x, cams = random_inputs(dtype=torch.float32, **inputs)
-    out = run(x, cams, backend, mode, view)
-    (out * torch.linspace(-1, 2, out.numel()).reshape(out.shape)).sum().backward()
-    return out.detach(), {k: v.grad for k, v in x.items()}
-
-
-def assert_backends_agree(mode="blinn_phong", view="per_pixel", **inputs):
-    """Values to 1e-5, gradients to 1e-5 of their largest magnitude (at least 1)."""
-    (out, grads), (ref, ref_grads) = (value_and_grads(backend, mode, view, **inputs) for backend in BACKENDS)
-    torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5)
-    for name, g in ref_grads.items():
-        if g is None:
-            assert grads[name] is None or not grads[name].any()
-            continue
-        torch.testing.assert_close(grads[name], g, rtol=1e-5, atol=1e-5 * max(1.0, g.abs().max().item()), msg=name)
 
 
 @pytest.mark.parametrize("mode", ["diffuse", "blinn_phong"])
@@ -79,7 +28,7 @@ def test_gradcheck_float64(backend, mode, view):
     x["mask"].requires_grad_(True)
 
     def f(*tensors):
-        return run(dict(zip(names, tensors)), cams, backend, mode, view)
+        return shade_inputs(dict(zip(names, tensors)), cams, backend, mode, view)
 
     assert torch.autograd.gradcheck(f, tuple(x[k] for k in names), eps=1e-6, atol=1e-6, rtol=1e-5)
 
@@ -88,7 +37,7 @@ def test_gradcheck_float64(backend, mode, view):
 def test_gradient_of_a_sum_or_mean_equals_the_dense_one(reduce):
     """Their upstream gradient is one broadcast value, which the Dr.Jit backward reads as such."""
     x, cams = random_inputs(n=2, h=4, w=5, dtype=torch.float32)
-    out = run(x, cams, "drjit")
+    out = shade_inputs(x, cams, "drjit")
     broadcast = torch.autograd.grad(getattr(out, reduce)(), list(x.values()), retain_graph=True, allow_unused=True)
     weight = torch.full_like(out, 1.0 if reduce == "sum" else 1.0 / out.numel())
     dense = torch.autograd.grad((out * weight).sum(), list(x.values()), allow_unused=True)
@@ -103,12 +52,12 @@ def test_gradient_of_a_sum_or_mean_equals_the_dense_one(reduce):
 def test_repeated_backward_over_one_graph(backend):
     """A second backward (retain_graph) must use the new upstream gradient, not the first one's."""
     x, cams = random_inputs(n=2, h=4, w=4)
-    out = run(x, cams, backend)
+    out = shade_inputs(x, cams, backend)
     w1, w2 = torch.rand_like(out), -3 * torch.rand_like(out)
     g1 = torch.autograd.grad((out * w1).sum(), [x["normal"], x["irradiance"]], retain_graph=True)
     g2 = torch.autograd.grad((out * w2).sum(), [x["normal"], x["irradiance"]], retain_graph=True)
     x_ref, _ = random_inputs(n=2, h=4, w=4)
-    ref = run(x_ref, cams, "torch")
+    ref = shade_inputs(x_ref, cams, "torch")
     r2 = torch.autograd.grad((ref * w2).sum(), [x_ref["normal"], x_ref["irradiance"]])
     for a, b in zip(g2, r2):
         torch.testing.assert_close(a, b)
@@ -174,9 +123,9 @@ def test_extremes_are_finite_with_documented_values(case, dtype, backend):
 
 def test_non_unit_normals_are_renormalised():
     x, cams = random_inputs(n=1, h=4, w=4, requires_grad=False)
-    base = run(x, cams, "drjit")
+    base = shade_inputs(x, cams, "drjit")
     x["normal"] = x["normal"] * 3.7
-    torch.testing.assert_close(run(x, cams, "drjit"), base)
+    torch.testing.assert_close(shade_inputs(x, cams, "drjit"), base)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -185,11 +134,11 @@ def test_half_precision_inputs_compute_in_float32(half, backend):
     x, cams = random_inputs(n=1, h=4, w=4, dtype=torch.float32, requires_grad=False)
     for k in ("normal", "albedo", "alpha", "spec_albedo"):
         x[k] = x[k].to(half).requires_grad_(True)
-    out = run(x, cams, backend)
+    out = shade_inputs(x, cams, backend)
     assert out.dtype == torch.float32
     out.sum().backward()
     assert x["normal"].grad.dtype == half and torch.isfinite(x["normal"].grad.float()).all()
-    ref = run({k: v.detach().float() for k, v in x.items()}, cams, backend)
+    ref = shade_inputs({k: v.detach().float() for k, v in x.items()}, cams, backend)
     torch.testing.assert_close(out, ref)
 
 
@@ -287,65 +236,3 @@ def test_shared_lights_gradients_agree():
         torch.testing.assert_close(a, b)
 
 
-@pytest.mark.parametrize("freeze", [True, False])
-@pytest.mark.parametrize("width", [5, 6, 8])  # 1, 2 and 4 pixels per kernel lane
-def test_every_row_width_agrees_with_torch(width, freeze, monkeypatch):
-    from ngp_mi.render.shading import drjit_op
-
-    monkeypatch.setattr(drjit_op, "FREEZE", freeze)
-    assert_backends_agree(n=2, h=3, w=width, seed=width)
-
-
-def test_replayed_kernels_give_new_inputs_right_values_and_gradients():
-    """The Dr.Jit op records its kernels once per layout (``dr.freeze``); later calls replay them with
-    the new arrays. Each call must see its own inputs, and replaying must trace and compile nothing."""
-    from ngp_mi.render.shading import drjit_op
-
-    shape = {"n": 2, "h": 4, "w": 8}
-    value_and_grads("drjit", seed=100, **shape)  # records; so does the call below: Dr.Jit's flags are in the key
-    compiled_kernels(lambda: value_and_grads("drjit", seed=101, **shape))
-    frozen = [drjit_op.RECORDINGS[name] for name in ("_shade_forward", "_shade_backward")]
-    recordings = [f.n_recordings for f in frozen]
-    for seed in (1, 2, 3):
-        launched, compiled = compiled_kernels(lambda: value_and_grads("drjit", seed=seed, **shape))
-        assert len(launched) == 2 and not compiled  # one forward and one backward kernel, from the cache
-        assert_backends_agree(seed=seed, **shape)
-    assert [f.n_recordings for f in frozen] == recordings
-
-
-def test_repeated_calls_do_not_grow_memory():
-    """Recorded kernels are replayed with each call's arrays; nothing may accumulate per call."""
-    cams = [Camera.orbit(10.0, -60.0 + 15 * i, 32) for i in range(4)]
-
-    def step(seed):
-        g = torch.Generator().manual_seed(seed)
-        normal = torch.randn(4, 3, 32, 32, generator=g).requires_grad_()
-        albedo = torch.rand(4, 3, 32, 32, generator=g).requires_grad_()
-        lights = CameraLights.from_lights(overhead_rig(), cams)
-        lights.irradiance.requires_grad_()
-        shade(normal, albedo, None, lights, cams).mean().backward()
-
-    for seed in range(30):
-        step(seed)
-    before = rss_mib()
-    for seed in range(300):
-        step(seed)
-    assert rss_mib() - before < 5, f"RSS grew by {rss_mib() - before:.1f} MiB over 300 calls"
-
-
-def test_maps_that_start_off_a_packet_boundary():
-    """Views into a larger tensor may start at any element; the kernel's packet loads must not care."""
-    x, cams = random_inputs(n=2, h=4, w=8, dtype=torch.float32, seed=7)
-    storage = torch.zeros(1 + x["normal"].numel())
-    storage[1:] = x["normal"].detach().reshape(-1)
-    for backend in BACKENDS:
-        x[f"normal_{backend}"] = storage[1:].view(x["normal"].shape).requires_grad_()
-    assert x["normal_drjit"].data_ptr() % 16 != 0
-    results = {}
-    for backend in BACKENDS:
-        lights = CameraLights(x["directions"], x["irradiance"], x["positions"], x["intensity"])
-        out = shade(x[f"normal_{backend}"], x["albedo"], x["mask"], lights, cams, depth=x["depth"], backend=backend)
-        (out * torch.linspace(-1, 2, out.numel()).reshape(out.shape)).sum().backward()
-        results[backend] = (out.detach(), x[f"normal_{backend}"].grad)
-    for a, b in zip(results["drjit"], results["torch"]):
-        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)

@@ -47,11 +47,8 @@ def test_r_diff_over_pi_equals_unshadowed_lambertian_radiance():
     assert psnr(reference, ours / math.pi, interior.astype(float)) > 45.0
 
 
-def test_compare_with_trained_map_networks_and_fid(tmp_path):
-    from ngp_mi.training.maps import train_maps
-    from test_train_maps import config as train_config
-
-    run = train_maps(train_config(tmp_path, "run", iterations=2), log=lambda *_: None)  # maps + specular stage
+def test_compare_with_trained_map_networks_and_fid(tmp_path, tiny_maps_run):
+    run = tiny_maps_run  # maps + specular stage
     weights = tmp_path / "inception-2015-12-05.pt"
     torch.jit.save(torch.jit.script(_FakeInception()), str(weights))
     config = CompareConfig(num_shapes=1, views=2, resolution=32, light_setups=("rig", "rig+random"), spp_ladder=(4,),

@@ -2,10 +2,12 @@ import math
 
 import pytest
 import torch
+from helpers import maps_recipe
 
 from ngp_mi.camera import Camera
 from ngp_mi.eval.maps_eval import angular_error_deg, evaluate_maps, smooth_depth
 from ngp_mi.render.from_depth import normals_from_depth
+from ngp_mi.training.maps import train_maps
 
 
 def test_angular_error_known_angles():
@@ -33,11 +35,8 @@ def test_smoothing_keeps_background_and_planes():
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
-    from ngp_mi.training.maps import train_maps
-    from test_train_maps import config
-
     tmp = tmp_path_factory.mktemp("eval")
-    return train_maps(config(tmp, "run", iterations=3), log=lambda *_: None), tmp / "data"
+    return train_maps(maps_recipe(tmp, "run", iterations=3), log=lambda *_: None), tmp / "data"
 
 
 def test_evaluation_runs_and_reports_both_normal_methods(trained, tmp_path):

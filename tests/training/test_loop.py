@@ -1,0 +1,34 @@
+"""The trainers' shared loop: seeded batches, and a log that holds every step once after a resume."""
+
+import json
+
+import pytest
+
+from ngp_mi.training.loop import JsonLog, SeededBatches
+
+
+def test_batches_visit_every_item_once_per_epoch_and_ranks_split_them():
+    data = list(range(24))
+    ranks = [SeededBatches(data, 4, seed=3, rank=r, world=2) for r in range(2)]
+    epoch = [i for step in range(3) for b in ranks for i in b.indices(step)]
+    assert sorted(epoch) == data  # 3 steps x 2 ranks x 4 = one epoch
+    assert ranks[0].indices(0) == SeededBatches(data, 4, seed=3, rank=0, world=2).indices(0)  # reproducible
+    assert ranks[0].indices(3) != ranks[0].indices(0)  # the next epoch is another permutation
+
+
+def test_a_dataset_smaller_than_a_batch_repeats_or_is_refused():
+    assert sorted(set(SeededBatches([10, 11, 12], 8, seed=0, repeat=True).indices(5))) == [0, 1, 2]
+    assert len(SeededBatches([10, 11, 12], 8, seed=0, repeat=True).indices(0)) == 8
+    with pytest.raises(ValueError, match="smaller than one global batch"):
+        SeededBatches([10, 11, 12], 8, seed=0)
+
+
+def test_a_resumed_log_drops_the_steps_after_its_checkpoint(tmp_path):
+    log = JsonLog(tmp_path)
+    for step in range(1, 8):
+        log.write({"step": step, "loss": 1.0 / step})
+    log = JsonLog(tmp_path, resumed_step=5)  # killed after step 7, resumed from the checkpoint at 5
+    for step in (6, 7):
+        log.write({"step": step})
+    steps = [json.loads(line)["step"] for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    assert steps == list(range(1, 8))
