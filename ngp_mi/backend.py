@@ -151,6 +151,7 @@ _backend: Backend | None = None
 
 
 def _import_libraries() -> tuple[ModuleType, ModuleType]:
+    # Imported here, not at the top: DRJIT_LIBLLVM_PATH and the thread count must be set first.
     try:
         import drjit as dr
         import mitsuba as mi
