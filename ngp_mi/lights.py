@@ -23,6 +23,8 @@ from typing import Any, Iterable, Sequence, Union
 
 import numpy as np
 
+from ngp_mi.atomic import write_text
+
 Vec3 = tuple[float, float, float]
 
 
@@ -151,7 +153,7 @@ def lights_from_json(text: str, where: str = "lights") -> list[Light]:
 
 
 def save_lights(path: str | Path, lights: Iterable[Light]) -> None:
-    Path(path).write_text(lights_to_json(lights) + "\n")
+    write_text(path, lights_to_json(lights) + "\n")
 
 
 def load_lights(path: str | Path) -> list[Light]:

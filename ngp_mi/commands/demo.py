@@ -11,6 +11,7 @@ import json
 import time
 from pathlib import Path
 
+from ngp_mi.atomic import write_json
 from ngp_mi.camera import Camera, ViewDistribution
 from ngp_mi.geometry.families import generate
 from ngp_mi.lights import lights_to_json, overhead_rig
@@ -46,10 +47,10 @@ def run_demo(out_dir: str | Path = "outputs/demo", resolution: int = 128, views:
         rate = (i + 1) / (time.perf_counter() - start)
         log(f"demo: view {i + 1}/{views}  {rate:.1f} views/s  ETA {(views - i - 1) / rate:.1f} s")
     sheet = save_png(out_dir / "views.png", contact_sheet(tiles, labels, columns=4))
-    (out_dir / "views.json").write_text(json.dumps({
+    write_json(out_dir / "views.json", {
         "object": obj.id, "params": obj.params, "resolution": resolution, "spp": spp, "seed": seed,
         "cameras": [c.to_dict() for c in cameras], "lights": json.loads(lights_to_json(lights))["lights"],
-    }, indent=1))
+    })
     log(f"demo: wrote {sheet}")
     for family in ("chair", "car"):
         path = family_sheet(family, out_dir / f"{family}.png", count=family_count, resolution=resolution,

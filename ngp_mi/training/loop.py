@@ -18,6 +18,7 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import default_collate
 
+from ngp_mi.atomic import write_text
 from ngp_mi.models.base import BaseModel
 from ngp_mi.models.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint, saved_modules
 from ngp_mi.training.recipe import training_device
@@ -65,7 +66,7 @@ class JsonLog:
             lines = self.path.read_text().splitlines()
             kept = [line for line in lines if line.strip() and json.loads(line).get("step", 0) <= resumed_step]
             if len(kept) != len(lines):
-                self.path.write_text("".join(line + "\n" for line in kept))
+                write_text(self.path, "".join(line + "\n" for line in kept))
 
     def write(self, record: dict[str, Any]) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
