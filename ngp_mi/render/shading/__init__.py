@@ -9,7 +9,7 @@ Conventions: maps are NCHW, normals in camera space (OpenCV axes: x right, y dow
 lights converted to the same camera space. The direction to the viewer ``V`` is per pixel,
 ``−normalize(K⁻¹ [u, v, 1])`` at pixel centres, or the paper's single view direction ``(0, 0, −1)``.
 
-Values at the limits (all finite in value and gradient, ``tests/test_shading.py`` enumerates them):
+Values at the limits (all finite in value and gradient, ``tests/render/shading/test_shade.py`` enumerates them):
 
 * Normals are renormalised, ``n = N / max(|N|, ε)`` with ε = 1e-4 (computed as
   ``N · rsqrt(max(N·N, ε²))``, so there is no square root of 0): exact for |N| ≥ ε, and a
@@ -22,6 +22,8 @@ Values at the limits (all finite in value and gradient, ``tests/test_shading.py`
 * The specular term is gated by ``N·L > 0``, as in the classic fixed-function pipeline: the paper's
   Eq. (1) leaves this implicit, and without it a light behind the surface still makes a highlight.
 * Point lights: irradiance at normal incidence ``I / max(r², ε_r²)`` with ε_r = 1e-4.
+* Ties: ``max(x, 0)`` passes no gradient to ``x`` where ``x = 0`` exactly, in both backends: N·L = 0
+  at a zero normal, a zero light direction or a point light on the surface point.
 * float16 / bfloat16 inputs are computed in float32 and the result is float32; float64 stays float64.
 
 Layout: :mod:`.blinn_phong` (the equation, once), :mod:`.torch_op` and :mod:`.drjit_op` (the two

@@ -26,12 +26,21 @@ class Ops:
     rsqrt: Callable
     exp: Callable
     log: Callable
-    maximum: Callable  # maximum(array, float)
+    maximum: Callable  # maximum(array, float); no gradient flows into the array at a tie of max(x, 0)
     where: Callable    # where(condition, array, float)
     fma: Callable      # fma(a, b, c) = a * b + c (one instruction, one rounding, where the library has it)
 
 
-TORCH_OPS = Ops(torch.rsqrt, torch.exp, torch.log, lambda a, b: torch.clamp(a, min=b), torch.where,
+def _torch_maximum(a: torch.Tensor, b: float) -> torch.Tensor:
+    """max(a, b). At a tie of max(x, 0) the gradient is 0, Dr.Jit's convention, where torch.clamp
+    passes 1: at a zero normal or a point light on the surface point N·L = 0 exactly, and a passed
+    gradient is 1/ε large. relu's gradient at 0 is 0, and it costs what clamp does. The positive
+    floors (ε², 1e-30) keep clamp: a tie there needs |v|² = ε² exactly, and a where() per light
+    made the torch backend's Blinn-Phong 25 % slower."""
+    return torch.relu(a) if b == 0 else torch.clamp(a, min=b)
+
+
+TORCH_OPS = Ops(torch.rsqrt, torch.exp, torch.log, _torch_maximum, torch.where,
                 lambda a, b, c: a * b + c)
 
 

@@ -35,7 +35,9 @@ def _drjit_intrinsics(rows: tuple, float_type: type) -> Any:
     values = [v for row in rows for v in row]
     if len(rows) == 1:
         return tuple(dr.opaque(float_type, v) for v in values)
-    return dr.opaque(float_type, float_type(values))
+    array = float_type(values)  # dr.opaque() refuses an array: make this one opaque in place
+    dr.make_opaque(array)
+    return array
 
 
 def pixels_per_lane(width: int) -> int:
@@ -240,7 +242,9 @@ def drjit_shade(opts: dict, intrinsics: tuple, inputs: Sequence[torch.Tensor | N
     mod = dr.cuda.ad if normal.is_cuda else dr.llvm.ad
     Float, UInt = (mod.Float64 if normal.dtype == torch.float64 else mod.Float), mod.UInt
     n, _, h, w = normal.shape
-    wants = tuple(name for name, need in zip(INPUTS, needs) if need and name in x) if grad_out is not None else ()
+    # an empty input (no point lights) has nothing to differentiate, even when it requires grad
+    wants = tuple(name for name, need in zip(INPUTS, needs) if need and name in x and x[name].numel()) \
+        if grad_out is not None else ()
     expanded = set()
     for name in PER_IMAGE:
         if name in wants and x[name].shape[0] == 1 and n > 1:
