@@ -2,20 +2,22 @@
 
 Formats are read by trimesh (OBJ, PLY, OFF, STL, GLB / glTF, …). A file with several geometries
 (OBJ groups, glTF nodes) becomes one :class:`TriangleMesh` whose faces carry the index of the
-part they came from. Every mesh is validated and normalised (``geometry.mesh.normalize_mesh``);
+part they came from. Every mesh is validated and normalised in float64
+(``geometry.mesh.normalized_vertices``);
 a bad file raises :class:`MeshError` with the file and the reason, so that batch jobs can skip it
 and report why.
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import logging
 from pathlib import Path
 
 import numpy as np
 
-from ngp_mi.geometry.mesh import TriangleMesh, normalize_mesh
+from ngp_mi.geometry.mesh import TriangleMesh, normalized_vertices
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +53,8 @@ def load_mesh(path: str | Path, normalize: bool = True) -> TriangleMesh:
     path = Path(path)
     if not path.is_file():
         raise MeshError(path, "no such file")
+    if path.suffix.lower() == ".stl":
+        check_binary_stl(path)
     try:
         loaded = trimesh.load(str(path), process=False)
     except Exception as exc:  # trimesh raises many exception types for bad files
@@ -75,6 +79,11 @@ def load_mesh(path: str | Path, normalize: bool = True) -> TriangleMesh:
     v, f, ids = np.concatenate(vertices), np.concatenate(faces), np.concatenate(part_ids)
     if not np.all(np.isfinite(v)):
         raise MeshError(path, f"{int((~np.isfinite(v)).any(1).sum())} vertices are not finite")
+    if normalize:  # before anything is cast to float32 (TriangleMesh stores float32)
+        try:
+            v = normalized_vertices(v, str(path))
+        except ValueError as exc:
+            raise MeshError(path, str(exc).removeprefix(f"{path}: ")) from None
     corners = v[f]
     area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
     keep = area > DEGENERATE_AREA * max(1.0, float(np.ptp(v, axis=0).max()) ** 2)
@@ -86,7 +95,23 @@ def load_mesh(path: str | Path, normalize: bool = True) -> TriangleMesh:
         mesh = TriangleMesh(v, f[keep], ids[keep], name=path.stem)
     except ValueError as exc:
         raise MeshError(path, str(exc)) from None
-    return normalize_mesh(mesh) if normalize else mesh
+    return mesh
+
+
+def check_binary_stl(path: Path) -> None:
+    """A binary STL (80-byte header, triangle count, 50 bytes per triangle) whose size does not match
+    its count is truncated (or padded): say so, instead of trimesh's "no faces"."""
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(4096)
+    if head[:5].lower() == b"solid" and b"facet" in head:
+        return  # ASCII STL
+    if size < 84:
+        raise MeshError(path, f"truncated STL: {size} bytes, less than a binary STL's 84-byte header")
+    count = int.from_bytes(head[80:84], "little")
+    if size != 84 + 50 * count:
+        raise MeshError(path, f"truncated binary STL: its header announces {count} triangles "
+                              f"({84 + 50 * count} bytes), the file has {size} bytes")
 
 
 def find_meshes(root: str | Path) -> list[MeshSource]:
@@ -94,7 +119,8 @@ def find_meshes(root: str | Path) -> list[MeshSource]:
 
     A ShapeNet-style tree (``<synset>/<model_id>/models/model_normalized.obj``) gives ids
     ``synset/model_id``; otherwise every file with a mesh suffix gives its path relative to
-    ``root`` without the suffix.
+    ``root`` without the suffix — with it where two files would share an id (``a.obj`` and
+    ``a.stl`` become ``a.obj`` and ``a.stl``), so every id names one file.
     """
     root = Path(root)
     if not root.is_dir():
@@ -103,4 +129,7 @@ def find_meshes(root: str | Path) -> list[MeshSource]:
     if shapenet:
         return [MeshSource(f"{p.parents[2].name}/{p.parents[1].name}", p) for p in shapenet]
     files = sorted(p for p in root.rglob("*") if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
-    return [MeshSource(p.relative_to(root).with_suffix("").as_posix(), p) for p in files]
+    stems = [p.relative_to(root).with_suffix("").as_posix() for p in files]
+    shared = {s for s, n in collections.Counter(stems).items() if n > 1}
+    return sorted((MeshSource(p.relative_to(root).as_posix() if s in shared else s, p) for s, p in zip(stems, files)),
+                  key=lambda m: m.id)
