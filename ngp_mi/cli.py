@@ -24,6 +24,18 @@ def default(owner: Any, name: str) -> Any:
     return inspect.signature(owner).parameters[name].default
 
 
+def network_size(text: str) -> int:
+    """An argparse type: an image size the map networks take (:func:`ngp_mi.nets.networks.check_image_size`)."""
+    from ngp_mi.nets.networks import check_image_size
+
+    value = at_least(1)(text)
+    try:
+        check_image_size(value, value, "size")
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    return value
+
+
 def at_least(minimum: int) -> Callable[[str], int]:
     """An argparse type: an integer ``>= minimum`` (a sample count of 0 would divide by zero inside Mitsuba)."""
     def parse(text: str) -> int:
@@ -271,8 +283,8 @@ def generate_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=default(generate, "seed"),
                    help="seed of z_s and z_da of the first shape (default: %(default)s)")
     p.add_argument("--views", default=views, help="camera views 'THETA,PHI;…' in degrees (default: %(default)s)")
-    p.add_argument("--res", type=at_least(8), default=default(generate, "resolution"),
-                   help="image size (default: %(default)s)")
+    p.add_argument("--res", type=network_size, default=default(generate, "resolution"),
+                   help="image size, a multiple of 4 (default: %(default)s)")
     p.add_argument("--lights", default="rig", help="'rig' (the 4 overhead lights) or a lights JSON file")
     p.add_argument("--add-lights", help="a lights JSON file of lights added by R_BP (variant ngp-plus)")
     p.add_argument("--variant", default=default(generate, "variant").replace("_", "-"),

@@ -162,3 +162,38 @@ def worker_job(worker: int, progress, fail: int = -1) -> int:
         raise ValueError(f"worker {worker} was told to fail")
     progress.update(3)
     return 10 * worker
+
+
+class Bar:
+    """Stands in for a tqdm bar: counts what a job reports."""
+
+    total, n = 0, 0
+
+    def update(self, k):
+        self.n += k
+
+
+def sleeping_job(folder: str, worker: int, progress) -> None:
+    """A worker that writes its pid to ``folder/<worker>.pid`` and sleeps (killed-parent tests)."""
+    import os
+    import time
+
+    Path(folder, f"{worker}.pid").write_text(str(os.getpid()))
+    time.sleep(120)
+
+
+class ExitingReconstruct:
+    """A coarse-shape reconstruction whose process exits on its first shape (a worker dying, not a bad shape)."""
+
+    meta = {"run": "exiting"}
+
+    def __call__(self, grid):
+        raise SystemExit("told to exit")
+
+
+def alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (a zombie counts as ended)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] != "Z"
+    except (OSError, IndexError):
+        return False

@@ -37,6 +37,13 @@ def test_sample_counts_of_zero_are_refused_where_the_flag_is_read():
         assert done.returncode == 2 and "must be >= 1, got 0" in done.stderr
 
 
+def test_generate_names_the_sizes_the_networks_take():
+    done = run_cli("generate", "--maps-run", "any", "--out", "x", "--res", "30")
+    assert done.returncode == 2 and "--res: invalid network_size value" not in done.stderr
+    assert "size 30x30: the map networks take image sizes that are multiples of 4" in done.stderr
+    assert "nearest: 28 or 32" in done.stderr
+
+
 def test_help_and_light_commands_start_without_torch():
     code = ("import sys; from ngp_mi.cli import main\ntry: main(['--help'])\nexcept SystemExit: pass\n"
             "print('torch' in sys.modules, 'mitsuba' in sys.modules)")

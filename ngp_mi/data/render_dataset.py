@@ -8,12 +8,20 @@ Layout of ``OUT``::
     manifest[.shard-K-of-N].jsonl    one record per finished view
     summary[.shard-K-of-N].json      counts, rate and the reasons of skipped shapes
     render-dataset.log               the log
+    render-dataset[.shard-K-of-N].lock         who renders this shard now (:mod:`ngp_mi.lock`)
+    render-dataset[.shard-K-of-N].workers.lock held by that job's worker processes
 
 A view is finished once its manifest line is written, which happens after its files were
 written atomically: a killed run leaves no partial file and a re-run renders only what is
 missing (whatever shard or worker rendered the rest). ``--shard K/N`` takes every N-th shape
 starting at K, so N processes (or machines) can share the work; each writes its own manifest,
-and :func:`load_manifest` reads them all.
+and :func:`load_manifest` reads them all. One job at a time renders a shard: a second one into the
+same folder and shard is refused with the first one's pid, host and command.
+
+Before anything is written the source is resolved (a missing file or an empty folder is one clear
+error) and the memory the job needs is estimated (:meth:`DatasetConfig.memory_needed`): a job that
+cannot fit is refused with the figure. A shape that fails to load, or that no view sees, is
+skipped with its reason; a job that renders nothing while views are missing exits with an error.
 
 Speed (``bench/RESULTS.md``): all views of a shape are rendered by one kernel
 (:meth:`GBufferRenderer.render_views`); maps are stored in the object's bounding rectangle (the
@@ -33,27 +41,39 @@ import json
 import logging
 import os
 import platform
+import socket
 import time
 from pathlib import Path
 from typing import Any, Iterator, Sequence
 
 from tqdm import tqdm
 
-from ngp_mi import __version__, backend
+from ngp_mi import __version__, backend, lock
 from ngp_mi.atomic import write_json
 from ngp_mi.camera import Camera, ViewDistribution
 from ngp_mi.data.exr import COMPRESSIONS, nonzero_windows, write_exr
 from ngp_mi.data.manifest import BackgroundWriter, ManifestWriter, load_manifest, manifest_records
-from ngp_mi.data.sources import Reconstruct, SourceItem, autoencoded_items, resolve_source
+from ngp_mi.data.sources import Reconstruct, SourceItem, autoencoded_items, coarse_shapes_of, source_items
 from ngp_mi.data.views import LIGHT_MODES, derived_seed, view_cameras, view_lights
 from ngp_mi.data.workers import BarProgress, run_workers
+from ngp_mi.geometry.sources import ShapeRef, resolve_shapes
 from ngp_mi.lights import Light
-from ngp_mi.render.gbuffer import CHANNELS, GBufferRenderer
+from ngp_mi.render.gbuffer import CHANNELS, LANES_PER_LAUNCH, GBufferRenderer
 from ngp_mi.render.scene import build_scene, lights_to_mitsuba, render, set_sensor_camera
 from ngp_mi.viz import save_png, to_uint8
 
 log = logging.getLogger("ngp_mi.render_dataset")
 STORAGE_SETTINGS = ("compression", "full_window")  # how maps are stored, not what they hold: may change on resume
+CHANNEL_WIDTH = {"depth": 1, "mask": 1, "normal": 3, "albedo": 3, "noc": 3}
+MAX_LANES = (1 << 32) - 1  # Dr.Jit's arrays (one lane per pixel of a launch) hold at most this many entries
+# Measured peaks (bench/RESULTS.md, "Memory of a dataset job"), rounded up: per pixel of a launch, per stored
+# float of a shape's maps (the launches' pieces and the stacked array), per pixel of a path-traced image (Mitsuba
+# loops over its samples: the peak does not grow with --real-spp), and the process itself.
+LAUNCH_BYTES_PER_LANE = 64
+MAP_BYTES_PER_FLOAT = 8
+PATH_BYTES_PER_PIXEL = 64
+PROCESS_BYTES = 256 << 20
+WORKERS_EXIT_SECONDS = 30.0  # how long a job waits for the workers of a killed one to notice (they take ~0.2 s)
 __all__ = ["DatasetConfig", "default_workers", "load_manifest", "parse_shard", "render_dataset"]
 
 
@@ -97,6 +117,21 @@ class DatasetConfig:
         """The views of shape ``shape_index``: seeded by (seed, shape index), independent of sharding."""
         return view_cameras(self.views, self.resolution, self.seed, shape_index, self.view_distribution)
 
+    def memory_needed(self) -> int:
+        """Bytes one process needs to render a shape: its launches, all its views' maps, a real image.
+
+        Raises ValueError when one view has more pixels than a Dr.Jit launch can hold.
+        """
+        pixels = self.resolution ** 2
+        if pixels > MAX_LANES:
+            raise ValueError(f"--res {self.resolution}: one view is {pixels:,} pixels, more than the {MAX_LANES:,} "
+                             f"a Dr.Jit launch holds (at most --res {int(MAX_LANES ** 0.5)})")
+        floats = sum(CHANNEL_WIDTH[c] for c in {*self.channels, "mask"})
+        launch = min(self.views * pixels, max(pixels, LANES_PER_LAUNCH)) * LAUNCH_BYTES_PER_LANE
+        maps = self.views * pixels * floats * MAP_BYTES_PER_FLOAT
+        real = pixels * PATH_BYTES_PER_PIXEL if self.real_spp else 0
+        return PROCESS_BYTES + launch + maps + real
+
     def view_lights(self, shape_index: int, view: int) -> list[Light]:
         """The lights of one view's real image: the overhead rig or random lights (``scene``: none)."""
         return [] if self.lights == "scene" else view_lights(self.lights, self.seed, shape_index, view)
@@ -131,6 +166,32 @@ def _check_settings(out: Path, config: DatasetConfig) -> None:
                              "use a new --out or the same settings to resume")
     else:  # a temporary name of its own: shards started together must not share one
         write_json(settings, current)
+
+
+def available_memory() -> int:
+    """Bytes the system can give without swapping (``MemAvailable``), or its physical memory."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def check_memory(config: DatasetConfig, workers: int, available: int | None = None) -> int:
+    """Refuse (ValueError with the figures) a job whose processes would need more memory than is
+    available; returns the estimate in bytes."""
+    needed = workers * config.memory_needed()
+    available = available_memory() if available is None else available
+    if needed > available:
+        gib = 1 << 30
+        raise ValueError(f"this job needs about {needed / gib:.1f} GiB ({workers} process(es) x "
+                         f"{config.views} views of {config.resolution}² with {', '.join(config.channels)}"
+                         f"{f', --real-spp {config.real_spp}' if config.real_spp else ''}) but "
+                         f"{available / gib:.1f} GiB are available on {socket.gethostname()}; "
+                         "lower --res, --views, --real-spp or --workers")
+    return needed
 
 
 def default_workers() -> int:
@@ -170,17 +231,24 @@ def render_dataset(config: DatasetConfig, out: str | Path, shard: tuple[int, int
     if (config.coarse_shapes is None) != (reconstruct is None):
         raise ValueError("coarse_shapes and reconstruct go together: pass reconstruct=CoarseShapes(run, resolution) "
                          "(ngp_mi.models.shape) with a config's coarse_shapes, and neither without")
-    out.mkdir(parents=True, exist_ok=True)
-    with _logging_to(out):
+    # Checked once, here, before anything is written: workers get the resolved shapes.
+    if reconstruct is not None:
+        refs = coarse_shapes_of(config.source, config.num_shapes, config.seed)
+    else:
+        refs = resolve_shapes(config.source, config.num_shapes, config.seed)
+    check_memory(config, workers)
+    suffix = _shard_suffix(shard)
+    with lock.exclusive(out / f"render-dataset{suffix}.lock", f"shard {shard[0]}/{shard[1]} of {out}"), \
+            _logging_to(out):
+        lock.wait_exclusive(_workers_lock(out, shard), "render-dataset", WORKERS_EXIT_SECONDS)
         _check_settings(out, config)
-        suffix = _shard_suffix(shard)
         bar = tqdm(total=0, unit="view", disable=not progress, dynamic_ncols=True, desc=f"render-dataset{suffix}")
         start = time.perf_counter()
         try:
             if workers == 1:
-                summary = _render_part(config, out, shard, reconstruct, BarProgress(bar))
+                summary = _render_part(config, out, shard, refs, reconstruct, BarProgress(bar))
             else:
-                summary = _run_workers(config, out, shard, reconstruct, workers, bar)
+                summary = _run_workers(config, out, shard, refs, reconstruct, workers, bar)
         finally:
             bar.close()
         elapsed = time.perf_counter() - start
@@ -194,21 +262,29 @@ def render_dataset(config: DatasetConfig, out: str | Path, shard: tuple[int, int
                                f"what they finished is kept, re-run to render the rest (see {summary_path})")
         if strict and summary["skipped_shapes"]:
             raise RuntimeError(f"--strict: {len(summary['skipped_shapes'])} shape(s) skipped, see {summary_path}")
+        if summary["views_rendered"] == 0 and summary["views_before"] < summary["views_total"]:
+            raise RuntimeError(f"nothing was rendered: {len(summary['skipped_shapes'])} shape(s) skipped "
+                               f"({'; '.join(f'{k}: {v}' for k, v in list(summary['skipped_shapes'].items())[:3])}), "
+                               f"see {summary_path}")
         return summary
 
 
-def _worker(config: DatasetConfig, out: Path, shard: tuple[int, int], reconstruct: Reconstruct | None, workers: int,
-            worker: int, progress: Any) -> dict[str, Any]:
+def _workers_lock(out: Path, shard: tuple[int, int]) -> Path:
+    return out / f"render-dataset{_shard_suffix(shard)}.workers.lock"
+
+
+def _worker(config: DatasetConfig, out: Path, shard: tuple[int, int], refs: Sequence[ShapeRef],
+            reconstruct: Reconstruct | None, workers: int, worker: int, progress: Any) -> dict[str, Any]:
     """Worker ``worker`` of ``workers``: shard (K + N·worker) / (N·workers), Dr.Jit on one thread."""
     backend.load(threads=1)  # this process is one of the job's cores
     k, n = shard
-    with _logging_to(out):
-        return _render_part(config, out, (k + n * worker, n * workers), reconstruct, progress)
+    with lock.shared(_workers_lock(out, shard)), _logging_to(out):
+        return _render_part(config, out, (k + n * worker, n * workers), refs, reconstruct, progress)
 
 
-def _run_workers(config: DatasetConfig, out: Path, shard: tuple[int, int], reconstruct: Reconstruct | None,
-                 workers: int, bar: Any) -> dict[str, Any]:
-    target = functools.partial(_worker, config, out, shard, reconstruct, workers)
+def _run_workers(config: DatasetConfig, out: Path, shard: tuple[int, int], refs: Sequence[ShapeRef],
+                 reconstruct: Reconstruct | None, workers: int, bar: Any) -> dict[str, Any]:
+    target = functools.partial(_worker, config, out, shard, refs, reconstruct, workers)
     results, failures, totals = run_workers(target, workers, bar, "render-dataset-worker", log=log.error)
     summary: dict[str, Any] = {"views_total": sum(t for t, _ in totals.values()),
                                "views_before": sum(b for _, b in totals.values()),
@@ -221,13 +297,10 @@ def _run_workers(config: DatasetConfig, out: Path, shard: tuple[int, int], recon
     return summary
 
 
-def _render_part(config: DatasetConfig, out: Path, shard: tuple[int, int], reconstruct: Reconstruct | None,
-                 progress: Any) -> dict[str, Any]:
+def _render_part(config: DatasetConfig, out: Path, shard: tuple[int, int], refs: Sequence[ShapeRef],
+                 reconstruct: Reconstruct | None, progress: Any) -> dict[str, Any]:
     """Render the missing views of one shard in this process, reporting to ``progress``."""
-    if reconstruct is not None:
-        items = autoencoded_items(config.source, config.num_shapes, config.seed, reconstruct)
-    else:
-        items = resolve_source(config.source, config.num_shapes, config.seed)
+    items = source_items(refs) if reconstruct is None else autoencoded_items(refs, reconstruct)
     mine = [(i, item) for i, item in enumerate(items) if i % shard[1] == shard[0]]
     done = set(manifest_records(out))  # every manifest: another shard or worker count may have rendered some
     total = len(mine) * config.views
@@ -263,6 +336,9 @@ def _render_shape(config: DatasetConfig, out: Path, index: int, item: SourceItem
     channels = config.channels if "mask" in config.channels else (*config.channels, "mask")
     gbuffer = GBufferRenderer(content.shapes, content.bounds, cameras[0], channels)
     all_maps = gbuffer.render_views([cameras[v] for v in views])
+    if not all_maps["mask"].any():
+        raise ValueError(f"no view sees the object (0 object pixels in {len(views)} views): "
+                         "is it centred at the origin within radius 0.5?")
     windows = [None] * len(views) if config.full_window else nonzero_windows(all_maps["mask"])
     real_scene = None
     for j, view in enumerate(views):

@@ -1,7 +1,8 @@
 """What the dataset renderer puts in a scene for each shape of a source (:mod:`ngp_mi.geometry.sources`).
 
-``resolve_source(source, num_shapes, seed)`` returns :class:`SourceItem` s whose ``load()``
-builds the Mitsuba shapes lazily (a bad mesh fails when its turn comes, with its reason):
+``resolve_source(source, num_shapes, seed)`` (or :func:`source_items` of shapes already resolved)
+returns :class:`SourceItem` s whose ``load()`` builds the Mitsuba shapes lazily (a bad mesh fails
+when its turn comes, with its reason):
 
 * ``chair`` / ``car`` — procedural objects ``seed, seed+1, …`` with their part materials;
 * a folder of meshes or a ShapeNet-style tree (``geometry.loaders.find_meshes``), or one mesh
@@ -23,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 import zlib
 from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import Any, Callable, Protocol, Sequence
 
 import numpy as np
 
@@ -103,9 +104,14 @@ def _scene(ref: ShapeRef) -> SourceItem:
 _LOADERS = {"procedural": _procedural, "mesh": _mesh, "scene": _scene}
 
 
+def source_items(refs: Sequence[ShapeRef]) -> list[SourceItem]:
+    """The items of shapes :func:`~ngp_mi.geometry.sources.resolve_shapes` found."""
+    return [_LOADERS[ref.kind](ref) for ref in refs]
+
+
 def resolve_source(source: str, num_shapes: int, seed: int = 0) -> list[SourceItem]:
     """The first ``num_shapes`` items of ``source`` (:func:`~ngp_mi.geometry.sources.resolve_shapes`)."""
-    return [_LOADERS[ref.kind](ref) for ref in resolve_shapes(source, num_shapes, seed)]
+    return source_items(resolve_shapes(source, num_shapes, seed))
 
 
 class Reconstruct(Protocol):
@@ -117,9 +123,16 @@ class Reconstruct(Protocol):
     def __call__(self, grid: Callable[[int], np.ndarray]) -> TriangleMesh | None: ...
 
 
-def autoencoded_items(source: str, num_shapes: int, seed: int, reconstruct: Reconstruct) -> list[SourceItem]:
-    """The shapes of ``source`` as ``reconstruct`` gives them (NGP's coarse shapes: the shape
-    autoencoder's reconstructions, :class:`ngp_mi.models.shape.CoarseShapes`).
+def coarse_shapes_of(source: str, num_shapes: int, seed: int) -> list[ShapeRef]:
+    """The shapes of ``source`` that have coarse versions: a family or meshes, not scenes."""
+    if source not in FAMILIES and Path(source).suffix.lower() == SCENE_SUFFIX:
+        raise ValueError(f"--coarse-shapes needs a family or mesh source, not a scene file: {source!r}")
+    return resolve_shapes(source, num_shapes, seed, scenes=False)
+
+
+def autoencoded_items(refs: Sequence[ShapeRef], reconstruct: Reconstruct) -> list[SourceItem]:
+    """The shapes ``refs`` (:func:`coarse_shapes_of` a source) as ``reconstruct`` gives them (NGP's
+    coarse shapes: the shape autoencoder's reconstructions, :class:`ngp_mi.models.shape.CoarseShapes`).
 
     Ids are the original shapes' ids, so the views of a dataset of these coarse shapes pair with
     the views of the detailed ones (same seed: same cameras). Every part gets one grey diffuse
@@ -129,8 +142,6 @@ def autoencoded_items(source: str, num_shapes: int, seed: int, reconstruct: Reco
     # Here, not at the top: occupancy imports torch (~3 s), which dataset workers otherwise go without.
     from ngp_mi.geometry.occupancy import load_solid
 
-    if source not in FAMILIES and Path(source).suffix.lower() == SCENE_SUFFIX:
-        raise ValueError(f"--coarse-shapes needs a family or mesh source, not a scene file: {source!r}")
     grey = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.5, 0.5, 0.5]}}
 
     def coarse(ref: ShapeRef) -> SourceItem:
@@ -141,6 +152,6 @@ def autoencoded_items(source: str, num_shapes: int, seed: int, reconstruct: Reco
             return SceneContent(mesh_parts_to_mitsuba(mesh, default_bsdf=grey), mesh.bounds,
                                 meta={"coarse_of": ref.id, **reconstruct.meta, "faces": int(len(mesh.faces))})
 
-        return SourceItem(ref.id, "autoencoded", str(source), load)
+        return SourceItem(ref.id, "autoencoded", ref.origin, load)
 
-    return [coarse(ref) for ref in resolve_shapes(source, num_shapes, seed, scenes=False)]
+    return [coarse(ref) for ref in refs]

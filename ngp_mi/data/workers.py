@@ -5,13 +5,23 @@ forked JIT or thread state) running ``target(worker, progress)``; ``progress.sta
 and ``progress.update(n)`` move the parent's progress bar, the value ``target`` returns comes back
 to the parent, and an exception (or a worker killed from outside) comes back as the reason it
 failed. ``target`` must be picklable (a module-level function or a ``functools.partial`` of one).
+
+A worker exits as soon as its parent is gone (killed with ``kill -9``, or by a ``timeout``): a
+watchdog thread sees the parent's pid change within :data:`WATCHDOG_SECONDS` and ends the process,
+so no orphan keeps writing into the job's output. Writers are atomic, so what it leaves is whole.
 """
 
 from __future__ import annotations
 
 import multiprocessing
+import os
 import queue
+import sys
+import threading
+import time
 from typing import Any, Callable
+
+WATCHDOG_SECONDS = 0.2
 
 
 class BarProgress:
@@ -41,7 +51,17 @@ class _QueueProgress:
         self.messages.put(("update", self.worker, done))
 
 
-def _worker_main(target: Callable[[int, Any], Any], worker: int, messages: Any) -> None:
+def _exit_with_parent(parent: int) -> None:
+    """Poll the parent's pid; when this process has been re-parented, end it at once."""
+    while True:
+        if os.getppid() != parent:
+            print(f"{multiprocessing.current_process().name}: parent {parent} is gone, exiting", file=sys.stderr)
+            os._exit(3)  # no clean-up: the atomic writers leave whole files or none
+        time.sleep(WATCHDOG_SECONDS)
+
+
+def _worker_main(target: Callable[[int, Any], Any], worker: int, messages: Any, parent: int) -> None:
+    threading.Thread(target=_exit_with_parent, args=(parent,), name="parent-watchdog", daemon=True).start()
     try:
         result = target(worker, _QueueProgress(messages, worker))
         messages.put(("done", worker, result))
@@ -55,7 +75,7 @@ def run_workers(target: Callable[[int, Any], Any], count: int, bar: Any, name: s
     """Run ``target`` in ``count`` processes; returns (results, failure reasons, (total, before) per worker)."""
     context = multiprocessing.get_context("spawn")
     messages = context.Queue()
-    processes = [context.Process(target=_worker_main, args=(target, j, messages), name=f"{name}-{j}", daemon=True)
+    processes = [context.Process(target=_worker_main, args=(target, j, messages, os.getpid()), name=f"{name}-{j}", daemon=True)
                  for j in range(count)]
     for process in processes:
         process.start()

@@ -48,6 +48,7 @@ from ngp_mi.eval.report import COMPARE_METRICS, plot_speed_accuracy, write_compa
 from ngp_mi.lights import Light, overhead_rig
 from ngp_mi.models.maps import MapsModel
 from ngp_mi.models.specular import SpecularModel
+from ngp_mi.nets.networks import check_image_size
 from ngp_mi.pipeline import ngp_image
 from ngp_mi.render.gbuffer import GBufferRenderer, maps_to_tensors
 from ngp_mi.render.scene import build_scene, lights_to_mitsuba, render
@@ -113,8 +114,10 @@ def _timed(fn: Callable[[], np.ndarray]) -> tuple[np.ndarray, float]:
 def run_compare(config: CompareConfig, out: str | Path, log=print) -> dict[str, Any]:
     """Render, time and score every method; write images, ``results.json`` and ``report.html``."""
     out = Path(out)
-    (out / "images").mkdir(parents=True, exist_ok=True)
     check_light_setups(config.light_setups)  # bad names fail before any work
+    if config.maps_checkpoint:
+        check_image_size(config.resolution, config.resolution, "--res")
+    (out / "images").mkdir(parents=True, exist_ok=True)
     inception = None
     if config.inception_weights:
         inception = InceptionFeatures(config.inception_weights)

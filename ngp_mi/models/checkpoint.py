@@ -3,17 +3,24 @@
 A checkpoint is a folder ``ckpt-<step:08d>/`` holding ``weights.safetensors`` (every module's
 parameters and buffers, prefixed by the module's name) and ``state.pt`` (optimiser states and
 plain values, read back with ``torch.load(weights_only=True)``). It is written under a temporary
-name and renamed, so a job killed mid-write leaves either the previous checkpoint or the new one.
+name and renamed, so a job killed mid-write leaves either the previous checkpoint or the new one
+(and a temporary ``.ckpt-*`` folder, which :func:`remove_temporaries` clears when the run resumes).
+
+A checkpoint damaged afterwards (a truncated copy, a disk error) raises :class:`DamagedCheckpoint`
+naming the file; :func:`newest_readable` (what loading a run and resuming use) then falls back to
+the newest checkpoint that reads, with a warning.
 """
 
 from __future__ import annotations
 
+import pickle
 import shutil
+import warnings
 from pathlib import Path
 from typing import Any, Callable
 
 import torch
-from safetensors import safe_open
+from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
 
 from ngp_mi.atomic import atomic_path
@@ -34,6 +41,33 @@ def save_checkpoint(root: str | Path, step: int, modules: dict[str, torch.nn.Mod
     return final
 
 
+class DamagedCheckpoint(ValueError):
+    """A checkpoint file that cannot be read; the message names it."""
+
+
+def _damaged(file: Path, exc: BaseException) -> DamagedCheckpoint:
+    # The first sentence only: torch's weights-only error goes on to suggest weights_only=False.
+    first = str(exc).strip().splitlines()[0].split(". ")[0] if str(exc).strip() else ""
+    return DamagedCheckpoint(f"{file}: damaged or not a checkpoint file ({type(exc).__name__}: {first[:200]})")
+
+
+def read_weights(path: str | Path) -> dict[str, torch.Tensor]:
+    """A checkpoint's tensors; :class:`DamagedCheckpoint` when the file does not read."""
+    file = Path(path) / "weights.safetensors"
+    try:
+        return load_file(file)
+    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
+        raise _damaged(file, exc) from None
+
+
+def remove_temporaries(root: str | Path) -> list[Path]:
+    """Remove the temporary folders of checkpoint writes that were killed; returns them."""
+    found = [p for p in Path(root).glob(".ckpt-*") if p.is_dir()]
+    for tmp in found:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return found
+
+
 def list_checkpoints(root: str | Path) -> list[Path]:
     """Complete checkpoints under ``root``, oldest first."""
     root = Path(root)
@@ -49,7 +83,7 @@ def saved_modules(path: str | Path) -> set[str]:
 def load_checkpoint(path: str | Path, modules: dict[str, torch.nn.Module]) -> dict[str, Any]:
     """Load weights into ``modules`` (strictly: every key must match) and return the state dict."""
     path = Path(path)
-    tensors = load_file(path / "weights.safetensors")
+    tensors = read_weights(path)
     for name, module in modules.items():
         prefix = f"{name}."
         own = {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
@@ -60,7 +94,7 @@ def load_checkpoint(path: str | Path, modules: dict[str, torch.nn.Module]) -> di
         if missing or unexpected:
             raise ValueError(f"{path}: checkpoint does not fit module {name!r} "
                              f"(missing {list(missing)[:3]}, unexpected {list(unexpected)[:3]})")
-    return torch.load(path / "state.pt", map_location="cpu", weights_only=True)  # optimisers move state to their parameters
+    return read_state(path)  # on the CPU: optimisers move state to their parameters
 
 
 def newest_checkpoint(run: str | Path) -> Path:
@@ -72,16 +106,44 @@ def newest_checkpoint(run: str | Path) -> Path:
 
 
 def read_state(path: str | Path) -> dict[str, Any]:
-    """A checkpoint's ``state.pt`` (plain values only: ``weights_only``), on the CPU."""
-    return torch.load(Path(path) / "state.pt", map_location="cpu", weights_only=True)
+    """A checkpoint's ``state.pt`` (plain values only: ``weights_only``), on the CPU;
+    :class:`DamagedCheckpoint` when the file does not read."""
+    file = Path(path) / "state.pt"
+    try:
+        state = torch.load(file, map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, EOFError, OSError, RuntimeError, ValueError, AttributeError) as exc:
+        raise _damaged(file, exc) from None
+    if not isinstance(state, dict) or "step" not in state:
+        raise DamagedCheckpoint(f"{file}: not a checkpoint state (no 'step' in it)")
+    return state
+
+
+def newest_readable(run: str | Path) -> tuple[Path, dict[str, Any]]:
+    """The newest checkpoint of ``run`` whose files read, and its state. A newer damaged one is
+    skipped with a warning that names the file; when none reads, the error names each."""
+    checkpoints = list_checkpoints(run)
+    if not checkpoints:
+        raise ValueError(f"{run}: no checkpoint found (ckpt-*/weights.safetensors + state.pt)")
+    damaged: list[str] = []
+    for path in reversed(checkpoints):
+        try:
+            state = read_state(path)
+            read_weights(path)
+        except DamagedCheckpoint as exc:
+            damaged.append(str(exc))
+            continue
+        for reason in damaged:
+            warnings.warn(f"{reason}; using the older {path.name} instead", stacklevel=2)
+        return path, state
+    raise DamagedCheckpoint(f"{run}: no checkpoint reads: " + "; ".join(damaged))
 
 
 def load_newest(run: str | Path, build: Callable[[dict[str, Any]], Any]) -> Any:
     """The model ``build(state)`` makes from the state of the run's newest checkpoint, with that
     checkpoint's weights loaded into its ``networks()``; None when ``build`` returns None (the run
     has no such model)."""
-    path = newest_checkpoint(run)
-    model = build(read_state(path))
+    path, state = newest_readable(run)
+    model = build(state)
     if model is not None:
         load_checkpoint(path, model.networks())
     return model

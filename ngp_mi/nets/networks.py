@@ -30,11 +30,27 @@ class ResnetBlock(nn.Module):
         return x + self.body(x)
 
 
+SIZE_MULTIPLE = 4  # two stride-2 downsamplings, undone by two upsamplings: other sizes come back another size
+MIN_SIZE = 8  # at 1/4 scale the residual blocks' reflection padding needs 2 pixels
+
+
+def check_image_size(height: int, width: int, what: str = "input") -> None:
+    """ValueError unless a :class:`ResnetGenerator` takes ``height`` x ``width`` images; it names the nearest sizes."""
+    for size in (height, width):
+        if size % SIZE_MULTIPLE or size < MIN_SIZE:
+            lower = max(MIN_SIZE, size // SIZE_MULTIPLE * SIZE_MULTIPLE)
+            upper = max(MIN_SIZE, lower + SIZE_MULTIPLE if size > lower else lower)
+            nearest = f"{lower} or {upper}" if lower != upper else f"{lower}"
+            raise ValueError(f"{what} {height}x{width}: the map networks take image sizes that are multiples of "
+                             f"{SIZE_MULTIPLE} and at least {MIN_SIZE} (nearest: {nearest})")
+
+
 class ResnetGenerator(nn.Module):
     """c7s1-ngf, two stride-2 downsamplings, ``blocks`` residual blocks, two upsamplings, c7s1-out, tanh.
 
     With ``latent_dim > 0``, the latent code (broadcast over the image) is concatenated to the
-    input of each encoder layer (c7s1 and both downsamplings).
+    input of each encoder layer (c7s1 and both downsamplings). Images are ``SIZE_MULTIPLE`` k
+    pixels on a side (:func:`check_image_size`).
     """
 
     def __init__(self, in_channels: int, out_channels: int, ngf: int = 64, blocks: int = 9, latent_dim: int = 0):
@@ -56,6 +72,7 @@ class ResnetGenerator(nn.Module):
         if (z is None) != (self.latent_dim == 0):
             raise ValueError(f"generator expects a latent code of size {self.latent_dim}" if self.latent_dim
                              else "generator takes no latent code")
+        check_image_size(*x.shape[-2:])
         for layer in self.encoder:
             if z is not None:
                 x = torch.cat([x, z[:, :, None, None].expand(-1, -1, *x.shape[-2:])], dim=1)

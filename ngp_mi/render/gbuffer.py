@@ -40,7 +40,7 @@ if TYPE_CHECKING:  # torch is imported only when tensors are asked for
 CHANNELS = ("depth", "normal", "albedo", "noc", "mask")
 _AOVS = {"depth": ("depth", 1), "normal": ("sh_normal", 3), "albedo": ("albedo", 3), "noc": ("position", 3)}
 _NEAR_CLIP = 1e-3  # Camera.to_mitsuba's near clip: Mitsuba's rays start on the near plane
-_LANES_PER_LAUNCH = 1 << 22  # bounds the memory of render_views (64 views at 256²)
+LANES_PER_LAUNCH = 1 << 22  # bounds the memory of render_views (64 views at 256²)
 
 
 def maps_to_tensors(maps: Mapping[str, np.ndarray]) -> dict[str, "torch.Tensor"]:
@@ -138,7 +138,7 @@ class GBufferRenderer:
         # Opaque, not literals: a literal bounding box would make every shape a new kernel to compile.
         lo = dr.opaque(mi.Vector3f, self.bounds[0].tolist())
         inv_extent = dr.opaque(mi.Vector3f, (1.0 / np.maximum(self.bounds[1] - self.bounds[0], 1e-12)).tolist())
-        step = max(1, _LANES_PER_LAUNCH // hw)
+        step = max(1, LANES_PER_LAUNCH // hw)
         chunks: dict[str, list[np.ndarray]] = {name: [] for name in self.channels}
         for first in range(0, n, step):
             count = min(step, n - first)

@@ -20,7 +20,8 @@ from torch.utils.data import default_collate
 
 from ngp_mi.atomic import write_text
 from ngp_mi.models.base import BaseModel
-from ngp_mi.models.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint, saved_modules
+from ngp_mi.models.checkpoint import (list_checkpoints, load_checkpoint, newest_readable, remove_temporaries,
+                                      save_checkpoint, saved_modules)
 from ngp_mi.training.recipe import training_device
 
 
@@ -83,18 +84,20 @@ def save(out: Path, step: int, models: Sequence[BaseModel], tables: dict[str, An
 
 
 def resume(out: Path, models: Sequence[BaseModel], optional: Sequence[BaseModel] = ()) -> tuple[int, Path | None]:
-    """Load the newest checkpoint in ``out`` into ``models`` and ``optional`` models (one whose
-    networks the checkpoint lacks — a stage added to the recipe later — starts fresh). Returns the
-    step it holds and its path, or (0, None) without one."""
-    checkpoints = list_checkpoints(out)
-    if not checkpoints:
+    """Load the newest readable checkpoint in ``out`` into ``models`` and ``optional`` models (one
+    whose networks the checkpoint lacks — a stage added to the recipe later — starts fresh). Returns
+    the step it holds and its path, or (0, None) without one. Temporaries of killed checkpoint
+    writes are removed first."""
+    remove_temporaries(out)
+    if not list_checkpoints(out):
         return 0, None
-    saved = saved_modules(checkpoints[-1])
+    path, _ = newest_readable(out)
+    saved = saved_modules(path)
     loaded = [m for m in models] + [m for m in optional if saved & set(m.networks())]
-    state = load_checkpoint(checkpoints[-1], {name: n for model in loaded for name, n in model.networks().items()})
+    state = load_checkpoint(path, {name: n for model in loaded for name, n in model.networks().items()})
     for model in loaded:
         model.load_optimizer_state(state)
-    return int(state["step"]), checkpoints[-1]
+    return int(state["step"]), path
 
 
 def start_processes(device_name: str) -> tuple[torch.device, int, int]:

@@ -1,16 +1,18 @@
 """ngp-mi render-dataset: layout, manifest, determinism, resume, shards, bad input, scene files."""
 
 import json
+import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
 import trimesh
-from helpers import ROOT, rss_mib
+from helpers import ROOT, ExitingReconstruct, rss_mib
 
 from ngp_mi.data.exr import read_exr
-from ngp_mi.data.render_dataset import DatasetConfig, load_manifest, parse_shard, render_dataset
+from ngp_mi.data.render_dataset import DatasetConfig, check_memory, load_manifest, parse_shard, render_dataset
 
 
 def run(out, **kwargs):
@@ -139,15 +141,6 @@ def test_worker_processes_write_what_one_process_writes(tmp_path):
     assert again["views_before"] == 6 and again["views_rendered"] == 0
 
 
-def test_a_failing_worker_is_reported_by_name(tmp_path):
-    config = DatasetConfig(source=str(tmp_path / "no-such-meshes"), num_shapes=2, views=1, resolution=16)
-    with pytest.raises(RuntimeError, match=r"2 worker\(s\) failed .*no-such-meshes.*not a family .*file or folder"):
-        render_dataset(config, tmp_path / "out", progress=False, workers=2)
-    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
-    assert sorted(summary["failed_workers"]) == ["0", "1"] and summary["views_rendered"] == 0
-    assert "worker 0 failed" in (tmp_path / "out" / "render-dataset.log").read_text()
-
-
 def test_shards_started_together_share_one_folder(tmp_path):
     cli = [sys.executable, "-m", "ngp_mi.cli", "render-dataset", "--source", "car", "--num-shapes", "4",
            "--views", "1", "--res", "16", "--workers", "1", "--quiet", "--out", str(tmp_path)]
@@ -249,3 +242,106 @@ def test_dataset_memory_stays_flat_over_2000_views(tmp_path):
         samples.append(rss_mib())
     # 5 MiB: a kernel compiled per shape (a literal in the trace) grew it by 14 MiB over these views
     assert samples[-1] - samples[0] < 5, f"RSS after each 250 views: {samples}"
+
+
+# ----------------------------------------------------------------------------- bad sources, memory, locks, kills
+
+def test_the_source_is_checked_once_before_anything_is_written(tmp_path):
+    for source, reason in ((tmp_path / "no-such-meshes", "not a family"), (tmp_path / "empty", "no meshes")):
+        (tmp_path / "empty").mkdir(exist_ok=True)
+        config = DatasetConfig(source=str(source), num_shapes=2, views=1, resolution=16)
+        with pytest.raises(ValueError, match=reason):
+            render_dataset(config, tmp_path / "out", progress=False, workers=2)
+        assert not (tmp_path / "out").exists()
+    summary = run(tmp_path / "out", num_shapes=1, views=1)  # the corrected command, into the same folder
+    assert summary["views_rendered"] == 1
+
+
+def test_a_job_that_renders_nothing_fails(tmp_path):
+    (tmp_path / "scenes").mkdir()
+    (tmp_path / "scenes" / "lights_only.xml").write_text(
+        '<scene version="3.0.0"><emitter type="constant"/></scene>')
+    (tmp_path / "scenes" / "far_away.xml").write_text(SCENE_XML.replace(
+        '<float name="radius" value="0.35"/>', '<float name="radius" value="0.35"/><point name="center" x="0" y="40" z="0"/>'))
+    config = DatasetConfig(source=str(tmp_path / "scenes"), num_shapes=5, views=2, resolution=16)
+    with pytest.raises(RuntimeError, match="nothing was rendered: 2 shape"):
+        render_dataset(config, tmp_path / "out", progress=False)
+    skipped = json.loads((tmp_path / "out" / "summary.json").read_text())["skipped_shapes"]
+    assert "no shapes" in skipped["lights_only"] and "no view sees the object" in skipped["far_away"]
+    done = subprocess.run([sys.executable, "-m", "ngp_mi.cli", "render-dataset", "--source",
+                           str(tmp_path / "scenes" / "lights_only.xml"), "--res", "16", "--quiet",
+                           "--out", str(tmp_path / "cli")], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 1 and "nothing was rendered" in done.stderr
+
+
+def test_a_failing_worker_is_reported_by_name(tmp_path):
+    config = DatasetConfig(source="chair", num_shapes=2, views=1, resolution=16, coarse_shapes="exiting")
+    with pytest.raises(RuntimeError, match=r"2 worker\(s\) failed .*told to exit"):
+        render_dataset(config, tmp_path / "out", progress=False, workers=2, reconstruct=ExitingReconstruct())
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert sorted(summary["failed_workers"]) == ["0", "1"] and summary["views_rendered"] == 0
+    assert "worker 0 failed" in (tmp_path / "out" / "render-dataset.log").read_text()
+
+
+def test_a_job_too_large_for_memory_is_refused_with_the_figure(tmp_path):
+    for settings, reason in (({"resolution": 30000}, r"needs about 644\.0 GiB .*GiB are available"),
+                             ({"views": 100000}, r"needs about \d+\.\d GiB \(1 process\(es\) x 100000 views"),
+                             ({"resolution": 100000}, "more than the 4,294,967,295 a Dr.Jit launch holds")):
+        config = DatasetConfig(source="chair", num_shapes=1, **settings)
+        with pytest.raises(ValueError, match=reason):
+            render_dataset(config, tmp_path / "out", progress=False)
+        assert not (tmp_path / "out").exists()
+    with pytest.raises(ValueError, match=r"needs about 12\.0 GiB \(2 process"):
+        check_memory(DatasetConfig(source="chair", views=64, resolution=1024), workers=2, available=1 << 30)
+
+
+def test_the_memory_estimate_bounds_the_measured_peak(tmp_path):
+    script = ("import resource, sys\n"
+              "from ngp_mi.data.render_dataset import DatasetConfig, render_dataset\n"
+              "c = DatasetConfig(source='chair', num_shapes=1, views=4, resolution=1536, real_spp=2)\n"
+              "render_dataset(c, sys.argv[1], progress=False)\n"
+              "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024, c.memory_needed())\n")
+    done = subprocess.run([sys.executable, "-c", script, str(tmp_path)], capture_output=True, text=True, timeout=300)
+    peak, estimate = (int(x) for x in done.stdout.split())
+    assert peak <= estimate <= 3 * peak, (peak >> 20, estimate >> 20)
+
+
+def test_one_job_at_a_time_writes_a_shard(tmp_path, monkeypatch):
+    from ngp_mi import lock
+    from ngp_mi.data import render_dataset as module
+
+    monkeypatch.setattr(module, "WORKERS_EXIT_SECONDS", 0.5)
+    with lock.exclusive(tmp_path / "render-dataset.lock", "a test"):
+        with pytest.raises(lock.Busy, match=rf"is being written by pid {os.getpid()} on .*since"):
+            run(tmp_path)
+        with pytest.raises(lock.Busy, match="earlier render-dataset job still write here"):
+            with lock.shared(tmp_path / "render-dataset.shard-0-of-2.workers.lock"):  # a killed job's worker
+                render_dataset(DatasetConfig(source="chair", num_shapes=2, views=1, resolution=16), tmp_path,
+                               shard=(0, 2), progress=False)
+        summary = render_dataset(DatasetConfig(source="chair", num_shapes=2, views=1, resolution=16), tmp_path,
+                                 shard=(1, 2), progress=False)  # another shard is another lock
+        assert summary["views_rendered"] == 1
+    assert run(tmp_path, views=1, resolution=16)["views_rendered"] == 1  # released: shard 0 of 1 renders the missing view
+
+
+def test_killing_the_job_stops_its_workers_and_a_rerun_renders_each_view_once(tmp_path):
+    cli = [sys.executable, "-m", "ngp_mi.cli", "render-dataset", "--source", "chair", "--num-shapes", "12",
+           "--views", "8", "--res", "48", "--real-spp", "64", "--workers", "2", "--quiet", "--out", str(tmp_path)]
+    job = subprocess.Popen(cli, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def lines():
+        return sum(len(p.read_text().splitlines()) for p in tmp_path.glob("manifest*.jsonl"))
+
+    deadline = time.monotonic() + 120
+    while not lines():
+        assert time.monotonic() < deadline and job.poll() is None, "the job rendered nothing"
+        time.sleep(0.05)
+    job.kill()  # the main process alone, as subprocess.run(timeout=...) does
+    job.wait()
+    time.sleep(1)
+    count = lines()
+    time.sleep(1.5)
+    assert lines() == count < 96, "the workers went on writing"
+    assert subprocess.run(cli, capture_output=True, timeout=600).returncode == 0
+    records = [(r["shape_id"], r["view"]) for r in load_manifest(tmp_path)]
+    assert len(records) == len(set(records)) == 96

@@ -1,11 +1,13 @@
 """Checkpoints: atomic, loaded without executing code, strict about modules."""
 
 import json
+import os
 
 import pytest
 import torch
 
-from ngp_mi.models.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint
+from ngp_mi.models.checkpoint import (DamagedCheckpoint, list_checkpoints, load_checkpoint, newest_readable,
+                                      save_checkpoint)
 from ngp_mi.models.maps import MapsConfig, MapsModel
 from ngp_mi.models.specular import SpecularModel
 from ngp_mi.training.loop import save
@@ -45,3 +47,36 @@ def test_a_model_loads_itself_from_a_run_and_from_checkpoints_that_predate_store
         MapsModel.from_run(tmp_path / "nothing")
 
 
+
+
+def _damage(file, how):
+    if how == "truncated":
+        file.write_bytes(file.read_bytes()[: file.stat().st_size // 2])
+    else:
+        file.write_bytes(os.urandom(4096))
+
+
+@pytest.mark.parametrize("file, how", [("weights.safetensors", "truncated"), ("weights.safetensors", "random"),
+                                       ("state.pt", "truncated"), ("state.pt", "random")])
+def test_a_damaged_checkpoint_is_named_and_a_run_falls_back_to_the_newest_readable(tmp_path, file, how):
+    torch.manual_seed(0)
+    model = MapsModel(TINY_MAPS)
+    recipe = {"model": {"ngf": 8, "blocks": 1, "nef": 8, "ndf": 8, "rf_maps": [16, 34], "rf_albedo": [16]}}
+    save(tmp_path, 4, [model], recipe)
+    older = {k: v.clone() for k, v in model.G_da.state_dict().items()}
+    with torch.no_grad():
+        next(model.G_da.parameters()).add_(1.0)
+    save(tmp_path, 8, [model], recipe)
+    _damage(tmp_path / "ckpt-00000008" / file, how)
+    with pytest.raises(DamagedCheckpoint, match=rf"ckpt-00000008/{file}: damaged or not a checkpoint file") as error:
+        load_checkpoint(tmp_path / "ckpt-00000008", model.networks())
+    assert "weights_only=False" not in str(error.value)
+    with pytest.warns(UserWarning, match=rf"ckpt-00000008/{file}: damaged .*using the older ckpt-00000004"):
+        path, state = newest_readable(tmp_path)
+    assert path.name == "ckpt-00000004" and state["step"] == 4
+    with pytest.warns(UserWarning, match="using the older ckpt-00000004"):
+        loaded = MapsModel.from_run(tmp_path)
+    assert all(torch.equal(loaded.G_da.state_dict()[k], v) for k, v in older.items())
+    _damage(tmp_path / "ckpt-00000004" / file, how)
+    with pytest.raises(DamagedCheckpoint, match=r"no checkpoint reads: .*ckpt-00000008.*ckpt-00000004"):
+        newest_readable(tmp_path)

@@ -16,6 +16,14 @@ def test_generator_shapes_and_latent_conditioning():
         define_G(1, 3, ngf=8, blocks=1)(torch.randn(1, 1, 16, 16), torch.randn(1, 8))
 
 
+@pytest.mark.parametrize("size, nearest", [(30, "28 or 32"), (6, "8"), (33, "32 or 36")])
+def test_the_generator_names_the_sizes_it_takes(size, nearest):
+    g = define_G(1, 3, ngf=8, blocks=1)
+    with pytest.raises(ValueError, match=rf"input {size}x32: .*multiples of 4 and at least 8 \(nearest: {nearest}\)"):
+        g(torch.randn(1, 1, size, 32))
+    assert g(torch.randn(1, 1, 8, 12)).shape == (1, 3, 8, 12)
+
+
 def test_encoder_outputs_mean_and_log_variance():
     mu, logvar = define_E(3, latent_dim=8, nef=8)(torch.randn(3, 3, 64, 64))
     assert mu.shape == logvar.shape == (3, 8)

@@ -3,8 +3,10 @@
 import json
 
 import pytest
+import torch
 
-from ngp_mi.training.loop import JsonLog, SeededBatches
+from ngp_mi.models.maps import MapsConfig, MapsModel
+from ngp_mi.training.loop import JsonLog, SeededBatches, resume, save
 
 
 def test_batches_visit_every_item_once_per_epoch_and_ranks_split_them():
@@ -32,3 +34,17 @@ def test_a_resumed_log_drops_the_steps_after_its_checkpoint(tmp_path):
         log.write({"step": step})
     steps = [json.loads(line)["step"] for line in (tmp_path / "log.jsonl").read_text().splitlines()]
     assert steps == list(range(1, 8))
+
+
+def test_a_resume_skips_a_damaged_checkpoint_and_clears_killed_writes(tmp_path):
+    torch.manual_seed(0)
+    model = MapsModel(MapsConfig(ngf=8, blocks=1, nef=8, ndf=8, rf_maps=(16, 34), rf_albedo=(16,)))
+    save(tmp_path, 3, [model], {})
+    save(tmp_path, 6, [model], {})
+    (tmp_path / "ckpt-00000006" / "state.pt").write_bytes(b"\x80\x02garbage")
+    killed = tmp_path / ".ckpt-00000009.a1b2c3"  # what a checkpoint write killed by kill -9 leaves
+    killed.mkdir()
+    (killed / "weights.safetensors").write_bytes(b"partial")
+    with pytest.warns(UserWarning, match=r"ckpt-00000006/state.pt: damaged .*using the older ckpt-00000003"):
+        step, path = resume(tmp_path, [model])
+    assert step == 3 and path.name == "ckpt-00000003" and not killed.exists()
