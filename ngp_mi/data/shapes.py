@@ -9,7 +9,8 @@ For each shape (a procedural family's object, or a mesh file) one ``shapes/<id>.
 * ``surface``: points on the surface, for the Chamfer-based sample metrics.
 
 Occupancy is exact for procedural solids (their signed distance) and the generalised winding
-number for meshes (:mod:`ngp_mi.geometry.occupancy`), so open, non-watertight meshes work.
+number for meshes (:mod:`ngp_mi.geometry.occupancy`, libigl's fast one), so open, non-watertight
+meshes work.
 Every file is written atomically (temp + rename): a rerun builds only missing shapes; a shape that
 fails (unreadable mesh, …) is skipped with its reason in ``summary.json`` and the log.
 ``dataset.json`` keeps the settings; a resumed build with different ones is refused.

@@ -12,10 +12,11 @@ otherwise; ``w > 1/2`` is inside. Ω_f uses Van Oosterom and Strackee's formula 
 
     tan(Ω/2) = a·(b×c) / (|a||b||c| + (a·b)|c| + (b·c)|a| + (c·a)|b|),   a, b, c = triangle − p.
 
-A grid of winding numbers costs (points × triangles); :func:`mesh_occupancy_grid` evaluates it
-exactly only in a band of cells around the surface and gives every other cell the label of its
-connected component, so a 64³ grid of a closed 20k-triangle mesh takes about 25 s on 2 cores
-instead of minutes (open meshes need more exact evaluations, see there).
+Evaluated directly (:func:`winding_numbers`) it costs points × triangles: minutes for a 64³ grid
+of a 100k-face mesh. Inside tests and grids use libigl's **fast winding number** instead (Barill,
+Dickson, Schmidt, Levin and Jacobson 2018; :func:`fast_winding_numbers`): a Barnes–Hut tree whose
+far triangles are summarised by dipole expansions, 0.2 s for that grid (bench/RESULTS.md, "Fast
+winding numbers"). The exact sum stays as the reference the tests hold the fast one to.
 
 All grids span the cube ``[-DOMAIN, DOMAIN]³`` (meshes are normalised to radius 0.5, so 0.55 leaves
 a margin that keeps extracted surfaces closed) and are indexed ``[i, j, k]`` ↔ ``(x, y, z)``.
@@ -27,6 +28,7 @@ import dataclasses
 import math
 from typing import Callable
 
+import igl
 import numpy as np
 import torch
 from scipy import ndimage
@@ -48,7 +50,8 @@ def grid_points(resolution: int, half: float = DOMAIN) -> np.ndarray:
 
 def winding_numbers(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,
                     pairs_per_chunk: int = 1 << 22) -> np.ndarray:
-    """Generalised winding number of the triangle mesh at each of ``points`` (P, 3) → (P,) float64.
+    """Generalised winding number of the triangle mesh at each of ``points`` (P, 3) → (P,) float64,
+    summed exactly over every triangle (the reference of :func:`fast_winding_numbers`).
 
     Float32 arithmetic (faster and half the memory of float64); the inside / outside decisions of the
     tests' meshes are the same.
@@ -67,9 +70,20 @@ def winding_numbers(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,
     return out.numpy().astype(np.float64)
 
 
+def fast_winding_numbers(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """The generalised winding number at ``points`` (P, 3) → (P,) float64 by libigl's fast winding
+    number (Barill et al. 2018; expansion order 2, Barnes–Hut β = 2): within 1e-3 of
+    :func:`winding_numbers` on the tests' meshes, in O((P + F) log F)."""
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(faces) == 0 or len(points) == 0:
+        return np.zeros(len(points))
+    return igl.fast_winding_number(np.ascontiguousarray(vertices, np.float64),
+                                   np.ascontiguousarray(faces, np.int64), np.ascontiguousarray(points))
+
+
 def mesh_inside(mesh: TriangleMesh) -> Inside:
     """Inside test of a (possibly open) mesh: winding number > 1/2."""
-    return lambda points: winding_numbers(mesh.vertices, mesh.faces, points) > 0.5
+    return lambda points: fast_winding_numbers(mesh.vertices, mesh.faces, points) > 0.5
 
 
 def triangle_areas(mesh: TriangleMesh) -> np.ndarray:
@@ -89,56 +103,10 @@ def surface_samples(mesh: TriangleMesh, count: int, rng: np.random.Generator) ->
     return (t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])).astype(np.float32)
 
 
-def _band_samples(mesh: TriangleMesh, spacing: float, rng: np.random.Generator) -> np.ndarray:
-    """Points on the mesh with about 16 per ``spacing``² of area, plus every vertex."""
-    count = int(min(4_000_000, max(1000, 16 * triangle_areas(mesh).sum() / spacing ** 2)))
-    return np.concatenate([surface_samples(mesh, count, rng), mesh.vertices])
-
-
-def mesh_occupancy_grid(mesh: TriangleMesh, resolution: int, half: float = DOMAIN, seed: int = 0,
-                        probes_per_component: int = 16) -> np.ndarray:
-    """Occupancy (R, R, R) bool of a mesh at the cell centres, by winding number.
-
-    Cells that the surface touches (and their neighbours) get their own winding number. The rest
-    fall into connected regions the surface does not cross. ``probes_per_component`` random cells of
-    each region are tested: when all agree clearly (w > 3/4 or w < 1/4), as for any region of a
-    closed mesh, the region takes that label; otherwise the inside leaks to the outside through a
-    hole, and every cell of the region gets its own winding number (as slow as brute force, but
-    right for open meshes).
-    """
-    rng = np.random.default_rng(seed)
-    centres = grid_points(resolution, half)
-    cell = 2 * half / resolution
-    samples = _band_samples(mesh, cell, rng)
-    index = np.floor((samples + half) / cell).astype(np.int64)
-    index = index[np.all((index >= 0) & (index < resolution), axis=1)]
-    band = np.zeros((resolution,) * 3, bool)
-    band[tuple(index.T)] = True
-    band = ndimage.binary_dilation(band)  # 6-neighbours: a cell the samples missed still gets its own test
-
-    occupancy = np.zeros_like(band)
-    occupancy[band] = winding_numbers(mesh.vertices, mesh.faces, centres[band]) > 0.5
-    labels, count = ndimage.label(~band)
-    if count:
-        flat = labels.ravel()
-        order = np.argsort(flat, kind="stable")
-        starts = np.searchsorted(flat[order], np.arange(1, count + 1))
-        ends = np.searchsorted(flat[order], np.arange(1, count + 1), side="right")
-        members = [order[s:e] for s, e in zip(starts, ends)]
-        probes = [m if len(m) <= probes_per_component else rng.choice(m, probes_per_component, replace=False)
-                  for m in members]
-        w = winding_numbers(mesh.vertices, mesh.faces, centres.reshape(-1, 3)[np.concatenate(probes)])
-        flat_occ = occupancy.ravel()
-        offset = 0
-        for cells, probe in zip(members, probes):
-            wp = w[offset:offset + len(probe)]
-            offset += len(probe)
-            if np.all(wp > 0.75) or np.all(wp < 0.25):  # a pure region: one side of a closed surface
-                flat_occ[cells] = wp[0] > 0.5
-            else:  # inside and outside meet through a hole: every cell gets its own winding number
-                flat_occ[cells] = winding_numbers(mesh.vertices, mesh.faces, centres.reshape(-1, 3)[cells]) > 0.5
-        occupancy = flat_occ.reshape(band.shape)
-    return occupancy
+def mesh_occupancy_grid(mesh: TriangleMesh, resolution: int, half: float = DOMAIN) -> np.ndarray:
+    """Occupancy (R, R, R) bool of a (possibly open) mesh at the cell centres: fast winding number > 1/2."""
+    points = grid_points(resolution, half).reshape(-1, 3)
+    return (fast_winding_numbers(mesh.vertices, mesh.faces, points) > 0.5).reshape((resolution,) * 3)
 
 
 def boundary_cells(occupancy: np.ndarray) -> np.ndarray:

@@ -345,3 +345,35 @@ def test_killing_the_job_stops_its_workers_and_a_rerun_renders_each_view_once(tm
     assert subprocess.run(cli, capture_output=True, timeout=600).returncode == 0
     records = [(r["shape_id"], r["view"]) for r in load_manifest(tmp_path)]
     assert len(records) == len(set(records)) == 96
+
+
+def test_a_folder_of_bad_meshes_beside_good_ones_renders_every_good_one_and_names_every_bad_one(tmp_path):
+    folder = tmp_path / "meshes"
+    folder.mkdir()
+
+    def obj(mesh, comment="# a box"):
+        return (comment + "\n" + "".join(f"v {x:.17g} {y:.17g} {z:.17g}\n" for x, y, z in mesh.vertices)
+                + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in mesh.faces))
+
+    box = trimesh.creation.box(extents=(1, 2, 1))
+    box.export(folder / "box.obj")
+    trimesh.creation.box(extents=(2, 1, 1)).export(folder / "box.stl")  # the same stem
+    (folder / "latin.obj").write_bytes(obj(box, "# chaise longue, café").encode("latin-1"))
+    (folder / "huge.obj").write_text(obj(box.copy().apply_scale(1e30)))
+    (folder / "offset.obj").write_text(obj(box.copy().apply_translation((1e6, -1e6, 5e5))))
+    (folder / "nan.obj").write_text("v 0 0 0\nv 1 0 0\nv nan 1 0\nf 1 2 3\n")
+    (folder / "cut.stl").write_bytes((folder / "box.stl").read_bytes()[:300])
+    (folder / "empty.obj").write_text("# nothing\n")
+    (folder / "overflow.obj").write_text("v 1e200 0 0\nv 0 1e200 0\nv 0 0 1e200\nf 1 2 3\n")
+    config = DatasetConfig(source=str(folder), num_shapes=20, views=2, resolution=24)
+    summary = render_dataset(config, tmp_path / "out", progress=False, workers=2)
+    rendered = {r["shape_id"] for r in load_manifest(tmp_path / "out")}
+    assert rendered == {"box.obj", "box.stl", "latin", "huge", "offset"} and summary["views_rendered"] == 10
+    skipped = summary["skipped_shapes"]
+    assert sorted(skipped) == ["cut", "empty", "nan", "overflow"]
+    assert "truncated binary STL" in skipped["cut"] and "not finite" in skipped["nan"]
+    assert "overflow.obj" in skipped["overflow"] and "empty.obj" in skipped["empty"]
+    log = (tmp_path / "out" / "render-dataset.log").read_text()
+    assert all(f"skipping {name}" in log for name in skipped)
+    masks = {r["shape_id"]: read_exr(tmp_path / "out" / r["files"]["maps"])["mask"] for r in load_manifest(tmp_path / "out")}
+    assert all(m.sum() > 20 for m in masks.values())  # the huge and the far-offset box too

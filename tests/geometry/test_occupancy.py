@@ -11,9 +11,11 @@ from ngp_mi.geometry.families import generate
 from ngp_mi.geometry.mesh import TriangleMesh
 from ngp_mi.geometry.occupancy import (
     boundary_cells,
+    fast_winding_numbers,
     grid_points,
     mesh_occupancy_grid,
     sample_occupancy_points,
+    surface_samples,
     voxel_iou,
     winding_numbers,
 )
@@ -50,11 +52,30 @@ def test_mesh_grid_equals_the_analytic_sphere_and_survives_holes_where_parity_fa
     assert len(ray_parity) == 0
 
 
-def test_band_and_components_equal_brute_force_winding_numbers():
-    mesh = generate("chair", 5).mesh()
-    points = grid_points(24).reshape(-1, 3)
-    brute = (winding_numbers(mesh.vertices, mesh.faces, points) > 0.5).reshape(24, 24, 24)
-    assert np.array_equal(mesh_occupancy_grid(mesh, 24), brute)
+def _open_and_closed_meshes():
+    """Closed: a sphere, a chair, a car. Open: a sphere with a hole, half a sphere, a chair missing 15 % of its faces."""
+    rng = np.random.default_rng(3)
+    closed_sphere, s = sphere(subdivisions=3)
+    chair, car = generate("chair", 5).mesh(), generate("car", 2).mesh()
+    holed = TriangleMesh(s.vertices, s.faces[s.triangles_center[:, 2] < 0.27])
+    half = TriangleMesh(s.vertices, s.faces[s.triangles_center[:, 2] > 0])
+    torn = TriangleMesh(chair.vertices, chair.faces[rng.random(len(chair.faces)) > 0.15])
+    return {"sphere": closed_sphere, "chair": chair, "car": car, "holed sphere": holed, "half sphere": half,
+            "torn chair": torn}
+
+
+@pytest.mark.parametrize("name", ["sphere", "chair", "car", "holed sphere", "half sphere", "torn chair"])
+def test_fast_winding_numbers_give_the_labels_of_the_exact_ones(name):
+    mesh = _open_and_closed_meshes()[name]
+    rng = np.random.default_rng(0)
+    points = np.concatenate([grid_points(20).reshape(-1, 3), rng.uniform(-0.55, 0.55, (4000, 3)),
+                             surface_samples(mesh, 4000, rng) + rng.normal(0, 0.01, (4000, 3))])  # near the surface
+    exact = winding_numbers(mesh.vertices, mesh.faces, points)
+    fast = fast_winding_numbers(mesh.vertices, mesh.faces, points)
+    assert np.mean((fast > 0.5) == (exact > 0.5)) >= 0.999
+    far = np.abs(exact - 0.5) > 0.05
+    np.testing.assert_allclose(fast[far], exact[far], atol=0.02)
+    assert np.array_equal(mesh_occupancy_grid(mesh, 20).ravel(), fast[:20 ** 3] > 0.5)
 
 
 def test_procedural_mesh_occupancy_matches_its_exact_sdf():
