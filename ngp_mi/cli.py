@@ -291,10 +291,23 @@ def generate_flags(p: argparse.ArgumentParser) -> None:
                    choices=["ngp", "ngp-bp", "ngp-plus", "no-sp", "no-gn", "no-gda"],
                    help="NGP variant or ablation (default: %(default)s)")
     p.add_argument("--exemplar", help="an albedo image: its appearance code (E_da) instead of a sampled z_da")
+    sweeps = p.add_argument_group("sweeps (each a labelled sheet in OUT/sweeps/)")
+    sweeps.add_argument("--orbit-camera", type=at_least(0), default=0, metavar="N",
+                        help="N views from φ -90° to 90° at the first view's elevation")
+    sweeps.add_argument("--orbit-light", type=at_least(0), default=0, metavar="N",
+                        help="one white light at N positions round the object")
+    sweeps.add_argument("--appearance-seeds", type=int_list(0), default=(), metavar="S,S,…", help="z_da seeds")
+    sweeps.add_argument("--shape-seeds", type=int_list(0), default=(), metavar="S,S,…", help="z_s seeds (one row)")
+    sweeps.add_argument("--light-count", type=int_list(1), default=(), metavar="K,K,…",
+                        help="the first K lights of the overhead rig, K in 1..4")
+    sweeps.add_argument("--interpolate", type=int, nargs=2, metavar=("A", "B"),
+                        help="slerp between the latents of seeds A and B: z_s, or z_da with --mesh")
+    sweeps.add_argument("--steps", type=at_least(2), default=5, help="steps of --interpolate (default: %(default)s)")
+    sweeps.add_argument("--animate", action="store_true", help="also a looping GIF of each orbit")
 
 
 def generate(args: argparse.Namespace) -> int:
-    from ngp_mi.commands.generate import generate
+    from ngp_mi.commands.generate import Sweeps, generate
     from ngp_mi.lights import load_lights, overhead_rig
 
     views = []
@@ -308,8 +321,15 @@ def generate(args: argparse.Namespace) -> int:
     added = load_lights(args.add_lights) if args.add_lights else []
     summary = generate(args.maps_run, args.out, shape_run=args.shape_run, mesh_path=args.mesh, num=args.num,
                        seed=args.seed, views=views, resolution=args.res, lights=lights, added_lights=added,
-                       variant=args.variant.replace("-", "_"), exemplar=args.exemplar)
-    print(f"generate: {len(summary['images'])} images in {args.out} (sheet.png, report.md)")
+                       variant=args.variant.replace("-", "_"), exemplar=args.exemplar,
+                       sweeps=Sweeps(orbit_camera=args.orbit_camera, orbit_light=args.orbit_light,
+                                     appearance_seeds=tuple(args.appearance_seeds),
+                                     shape_seeds=tuple(args.shape_seeds), light_count=tuple(args.light_count),
+                                     interpolate=tuple(args.interpolate) if args.interpolate else None,
+                                     steps=args.steps, animate=args.animate),
+                       command=["ngp-mi", *args.argv])
+    print(f"generate: {len(summary['images'])} images and {len(summary['sweep_files'])} sweep files in {args.out} "
+          "(sheet.png, sweeps/, report.md)")
     return 0
 
 
@@ -394,6 +414,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     from ngp_mi.backend import BackendError
 
+    args.argv = argv  # what a command records to be re-run
     try:
         return int(args.func(args) or 0)
     except (BackendError, ValueError, RuntimeError) as error:

@@ -20,17 +20,19 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from ngp_mi.camera import Camera
+from ngp_mi.camera import PAPER_FOCAL_MM, PAPER_RADIUS, Camera
 from ngp_mi.geometry.mesh import TriangleMesh
 from ngp_mi.lights import Light, overhead_rig
-from ngp_mi.models.maps import MapsModel
+from ngp_mi.models.maps import DEPTH_CENTER, MapsModel, depth_to_net
 from ngp_mi.models.shape import ShapeModel
 from ngp_mi.models.specular import SpecularModel
+from ngp_mi.nets.networks import check_image_size
 from ngp_mi.render.depth import project_depth
 from ngp_mi.render.from_depth import normals_from_depth
 from ngp_mi.render.shading import Constants, shade
 
 VARIANTS = ("ngp", "ngp_bp", "ngp_plus", "no_sp", "no_gn", "no_gda")
+NEEDS_SPECULAR = ("ngp", "ngp_plus", "no_gn", "no_gda")  # the variants that blend G_sp^real
 
 
 def latent(seed: int, dim: int) -> torch.Tensor:
@@ -55,6 +57,69 @@ def views_of(camera: Camera, bounds: np.ndarray) -> dict[str, torch.Tensor]:
             "bounds": torch.tensor(np.asarray(bounds), dtype=torch.float32)[None]}
 
 
+def _check_variant(variant: str, specular: SpecularModel | None) -> None:
+    if variant not in VARIANTS:
+        raise ValueError(f"NGP variant must be one of {VARIANTS}, got {variant!r}")
+    if specular is None and variant in NEEDS_SPECULAR:
+        raise ValueError(f"variant {variant!r} needs G_sp^real: a `train maps` run with a [specular] stage")
+
+
+def at_training_distance(depth: torch.Tensor, mask: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """The depth map moved along the optical axis so the world origin (the object's centre) lies at
+    the distance the map networks were trained at (``DEPTH_CENTER``, the paper's ρ = 2): a camera
+    moved nearer or farther changes the object's size in the image, not the depth range G_n reads."""
+    offset = float(camera.t[2]) - DEPTH_CENTER
+    return depth - offset * mask if offset else depth
+
+
+@torch.no_grad()
+def generate_normals(maps: MapsModel, depth: torch.Tensor, mask: torch.Tensor, camera: Camera,
+                     variant: str = "ngp") -> torch.Tensor:
+    """N^g = G_n(d) (paper Eq. image formation), or the depth map's own normals (ablation ``no_gn``)."""
+    if variant == "no_gn":
+        return normals_from_depth(depth, mask, camera)
+    own = normals_from_depth(depth, mask, camera) if maps.config.normal_residual else None
+    return maps.generate_normals(depth_to_net(at_training_distance(depth, mask, camera), mask), [camera], own)
+
+
+@torch.no_grad()
+def generate_albedo(maps: MapsModel, depth: torch.Tensor, mask: torch.Tensor, camera: Camera, bounds: np.ndarray,
+                    normal: torch.Tensor, z_da: torch.Tensor, variant: str = "ngp") -> torch.Tensor:
+    """I_da^g = G_da(NOC(d), N^g, z_da) in [0, 1] (paper Eq. image formation), or white (ablation ``no_gda``)."""
+    if variant == "no_gda":
+        return torch.ones_like(normal)
+    noc = maps.noc(depth, mask, views_of(camera, bounds))
+    return (maps.G_da(torch.cat([noc, normal], 1), z_da) + 1) / 2
+
+
+@torch.no_grad()
+def realistic_specular(maps: MapsModel, specular: SpecularModel, normal: torch.Tensor, albedo: torch.Tensor,
+                       mask: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """G_sp^real(N^g, I_df^g): the learned specular map, from the diffuse image under the training rig
+    (its input domain; its highlights do not follow other lights, as the paper notes)."""
+    base = 2 * maps.render_diffuse(normal, albedo, mask, [camera]) - 1
+    return specular.specular(normal, base, mask)
+
+
+@torch.no_grad()
+def shade_maps(normal: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor, camera: Camera,
+               lights: Sequence[Light], variant: str, constants: Constants,
+               added_lights: Sequence[Light] = ()) -> torch.Tensor:
+    """The fixed renderer of the variant, as radiance (R / π): R_BP(L) for ``ngp_bp``; R_diff(L) for
+    NGP and its ablations; R_diff(rig) + R_BP(added lights) for ``ngp_plus``. ``depth`` places the
+    surface for point lights."""
+    c = constants
+    if variant == "ngp_bp":
+        return shade(normal, albedo, mask, lights, camera, mode="blinn_phong", k_d=c.k_d, k_s=c.k_s,
+                     alpha=c.alpha, depth=depth) / math.pi
+    image = shade(normal, albedo, mask, overhead_rig() if variant == "ngp_plus" else lights, camera, mode="diffuse",
+                  k_d=c.k_d, depth=depth) / math.pi
+    if variant == "ngp_plus" and added_lights:
+        image = image + shade(normal, albedo, mask, added_lights, camera, mode="blinn_phong", k_d=c.k_d, k_s=c.k_s,
+                              alpha=c.alpha, depth=depth) / math.pi
+    return image
+
+
 @torch.no_grad()
 def ngp_image(maps: MapsModel, specular: SpecularModel | None, depth: torch.Tensor, mask: torch.Tensor,
               camera: Camera, bounds: np.ndarray, z_da: torch.Tensor, lights: Sequence[Light], variant: str = "ngp",
@@ -64,40 +129,25 @@ def ngp_image(maps: MapsModel, specular: SpecularModel | None, depth: torch.Tens
     Variants: ``ngp_bp`` R_BP(N^g, I_da^g, L); ``no_sp`` R_diff only (NGP w/o G_sp^real); ``ngp``
     R_diff(L) / π ⊕ G_sp^real(N^g, I_df^g); ``no_gn`` / ``no_gda`` NGP with the depth map's own
     normals / a white albedo (the paper's ablations); ``ngp_plus`` NGP under the overhead rig plus
-    R_BP of ``added_lights``. G_sp^real always sees the diffuse image under the training rig (its
-    input domain), so its highlights do not follow other lights, as the paper notes. R_* / π is
-    radiance (see :mod:`ngp_mi.render.shading`). ``constants`` default to the ones the map networks
-    were trained with (``maps.config.constants``; G_sp^real's input is shaded with them too).
+    R_BP of ``added_lights``. R_* / π is radiance (see :mod:`ngp_mi.render.shading`). ``constants``
+    default to the ones the map networks were trained with (``maps.config.constants``; G_sp^real's
+    input is shaded with them too). The stages are the functions above; :class:`NGPScene` caches them.
     """
-    if variant not in VARIANTS:
-        raise ValueError(f"NGP variant must be one of {VARIANTS}, got {variant!r}")
-    if specular is None and variant in ("ngp", "no_gn", "no_gda", "ngp_plus"):
-        raise ValueError(f"variant {variant!r} needs G_sp^real: a `train maps` run with a [specular] stage")
-    views = views_of(camera, bounds)
-    if variant == "no_gn":
-        normal = normals_from_depth(depth, mask, camera)
-        albedo_net = maps.G_da(torch.cat([maps.noc(depth, mask, views), normal], 1), z_da)
-    else:
-        generated = maps.decorate(depth, mask, views, z_da)
-        normal, albedo_net = generated["normal"], generated["albedo"]
-    albedo = torch.ones_like(albedo_net) if variant == "no_gda" else (albedo_net + 1) / 2
-    c = constants or maps.config.constants
+    _check_variant(variant, specular)
+    normal = generate_normals(maps, depth, mask, camera, variant)
+    albedo = generate_albedo(maps, depth, mask, camera, bounds, normal, z_da, variant)
     out = {"normal": normal, "albedo": albedo}
-    if variant == "ngp_bp":
-        out["image"] = shade(normal, albedo, mask, lights, camera, mode="blinn_phong", k_d=c.k_d, k_s=c.k_s,
-                             alpha=c.alpha) / math.pi
-        return out
-    diffuse_lights = overhead_rig() if variant == "ngp_plus" else lights
-    image = shade(normal, albedo, mask, diffuse_lights, camera, mode="diffuse", k_d=c.k_d) / math.pi
-    if variant != "no_sp":
-        base = 2 * maps.render_diffuse(normal, albedo, mask, [camera]) - 1
-        out["specular"] = specular.specular(normal, base, mask)
+    image = shade_maps(normal, albedo, mask, depth, camera, lights, variant, constants or maps.config.constants,
+                       added_lights)
+    if variant in NEEDS_SPECULAR:
+        out["specular"] = realistic_specular(maps, specular, normal, albedo, mask, camera)
         image = image + out["specular"]
-    if variant == "ngp_plus" and added_lights:
-        image = image + shade(normal, albedo, mask, added_lights, camera, mode="blinn_phong", k_d=c.k_d, k_s=c.k_s,
-                              alpha=c.alpha) / math.pi
     out["image"] = image
     return out
+
+
+class EmptyShape(ValueError):
+    """G_shape's field has no inside for this latent: there is nothing to render."""
 
 
 class NGP:
@@ -115,7 +165,7 @@ class NGP:
             raise ValueError("sampling shapes needs a `train shape` run (--shape-run)")
         mesh = self.shape_model.shape(z_s, resolution=resolution).mesh
         if mesh is None:
-            raise ValueError("G_shape produced an empty shape for this z_s")
+            raise EmptyShape("G_shape produced an empty shape for this z_s")
         return mesh
 
     def appearance(self, seed: int | None = None, exemplar: torch.Tensor | None = None) -> torch.Tensor:
@@ -133,3 +183,215 @@ class NGP:
         out = ngp_image(self.maps, self.specular, projected.depth, projected.mask, camera, mesh.bounds, z_da, lights,
                         variant, added_lights, constants)
         return {"depth": projected.depth, "mask": projected.mask, **out}
+
+
+STAGES = ("extract", "project", "normals", "albedo", "specular", "shade", "blend")
+
+
+def _same(a: object, b: object) -> bool:
+    """Whether a handle's new value equals its old one (tensors and arrays by value, meshes by identity)."""
+    if isinstance(a, (tuple, list)) and isinstance(b, (tuple, list)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
+        return a.shape == b.shape and bool(torch.equal(a, b))
+    if isinstance(a, Camera) and isinstance(b, Camera):
+        return a.to_dict() == b.to_dict()
+    if isinstance(a, TriangleMesh) or isinstance(b, TriangleMesh):
+        return a is b
+    try:
+        return bool(a == b)
+    except (TypeError, ValueError):
+        return False
+
+
+class NGPScene:
+    """NGP driven like a renderer: set the handles, call :meth:`render`.
+
+    Handles (paper Sec. 3.1): the shape (z_s by seed or vector, a slerp between two, a user or
+    edited mesh), the camera (θ, φ, distance, focal length, or any :class:`Camera`), the appearance
+    (z_da by seed or vector, a slerp, an exemplar albedo image through E_da, or an edited albedo map
+    used directly), the lights (any number of directional and point lights; the overhead rig by
+    default), the variant and the Blinn-Phong constants.
+
+    Each stage of the data flow keeps its result until one of its inputs changes (``../DESIGN.md``):
+
+    ========  =========================================  ==========================
+    stage     computes                                   re-runs after a change of
+    ========  =========================================  ==========================
+    extract   G_shape(z_s) → mesh                        shape
+    project   Π_v(mesh) → depth, mask (Mitsuba)          + camera
+    normals   G_n(d)                                     + variant's normals
+    albedo    G_da(NOC, N, z_da) or the edited map       + appearance
+    specular  G_sp^real(N, I_df)                         (as albedo; only variants that blend it)
+    shade     R_diff / R_BP under the lights             + lights, variant, constants
+    blend     shade ⊕ specular                           any of the above
+    ========  =========================================  ==========================
+
+    ``stage_runs`` counts how often each stage ran, so a light change can be seen to re-run only
+    shade and blend.
+    """
+
+    def __init__(self, ngp: NGP, resolution: int = 128, variant: str = "ngp"):
+        self.ngp = ngp
+        self.resolution = resolution
+        self.stage_runs: dict[str, int] = {stage: 0 for stage in STAGES}
+        self._versions = {"shape": 0, "camera": 0, "appearance": 0, "lights": 0, "variant": 0, "constants": 0}
+        self._cache: dict[str, tuple[tuple, object]] = {}
+        self._shape: tuple[str, object] | None = None
+        self._mesh: TriangleMesh | None = None
+        self.camera = Camera.orbit(10.0, -30.0, resolution)
+        self._appearance: tuple[str, torch.Tensor] = ("z_da", latent(0, ngp.maps.config.latent_dim)[None])
+        self.lights: list[Light] = overhead_rig()
+        self.added_lights: list[Light] = []
+        self.variant = variant
+        self.constants: Constants = ngp.maps.config.constants
+        _check_variant(variant, ngp.specular)
+
+    # ------------------------------------------------------------------ handles
+    def _changed(self, what: str, old: object = None, new: object = None) -> None:
+        """Count a change of ``what`` (not when ``new`` is the value it had: nothing downstream re-runs)."""
+        if old is None or not _same(old, new):
+            self._versions[what] += 1
+
+    def set_shape(self, z_s: torch.Tensor | None = None, *, seed: int | None = None,
+                  mesh: TriangleMesh | str | Path | None = None) -> "NGPScene":
+        """The shape: a latent ``z_s`` of G_shape, the latent of ``seed``, or a mesh (a file is loaded
+        and normalised; an edited :class:`TriangleMesh` is used as it is)."""
+        if sum(x is not None for x in (z_s, seed, mesh)) != 1:
+            raise ValueError("set_shape: give exactly one of z_s, seed or mesh")
+        if mesh is not None:
+            if not isinstance(mesh, TriangleMesh):
+                from ngp_mi.geometry.loaders import load_mesh  # only user meshes need the loaders
+
+                mesh = load_mesh(mesh)
+            shape = ("mesh", mesh)
+        else:
+            if self.ngp.shape_model is None:
+                raise ValueError("sampling shapes needs a `train shape` run (NGP(..., shape_run=...))")
+            dim = self.ngp.shape_model.config.z_dim
+            z = latent(seed, dim) if seed is not None else torch.as_tensor(z_s, dtype=torch.float32).reshape(-1)
+            if z.shape != (dim,):
+                raise ValueError(f"set_shape: z_s must have {dim} entries, got {tuple(z.shape)}")
+            shape = ("z_s", z)
+        old, self._shape = self._shape, shape
+        self._changed("shape", old, shape)
+        return self
+
+    def interpolate_shapes(self, a: torch.Tensor | int, b: torch.Tensor | int, t: float) -> "NGPScene":
+        """z_s = slerp(a, b, t) between two latents (or the latents of two seeds)."""
+        dim = self.ngp.shape_model.config.z_dim if self.ngp.shape_model is not None else 0
+        za, zb = (latent(x, dim) if isinstance(x, int) else torch.as_tensor(x).reshape(-1) for x in (a, b))
+        return self.set_shape(slerp(za, zb, t))
+
+    def set_camera(self, camera: Camera | None = None, *, theta: float = 10.0, phi: float = -30.0,
+                   distance: float = PAPER_RADIUS, focal_mm: float = PAPER_FOCAL_MM) -> "NGPScene":
+        """The camera: ``camera``, or one on the orbit (θ elevation, φ azimuth in degrees, distance to
+        the origin, focal length on 36 mm film) at the scene's resolution."""
+        if camera is None:
+            camera = Camera.orbit(theta, phi, self.resolution, radius=distance, focal_mm=focal_mm)
+        check_image_size(camera.height, camera.width, "camera")
+        old, self.camera = self.camera, camera
+        self._changed("camera", old, camera)
+        return self
+
+    def set_appearance(self, z_da: torch.Tensor | None = None, *, seed: int | None = None,
+                       exemplar: torch.Tensor | None = None, albedo: torch.Tensor | None = None) -> "NGPScene":
+        """The appearance: a latent ``z_da``, the latent of ``seed``, μ(E_da(``exemplar``)) of an albedo
+        image (1, 3, H, W) in [0, 1], or an ``albedo`` map (1, 3, H, W) in [0, 1] used as I_da
+        directly (the paper's direct editing; it replaces G_da until another appearance is set)."""
+        if sum(x is not None for x in (z_da, seed, exemplar, albedo)) != 1:
+            raise ValueError("set_appearance: give exactly one of z_da, seed, exemplar or albedo")
+        dim = self.ngp.maps.config.latent_dim
+        if albedo is not None:
+            albedo = torch.as_tensor(albedo, dtype=torch.float32)
+            if albedo.shape != (1, 3, self.camera.height, self.camera.width):
+                raise ValueError(f"set_appearance: albedo must be (1, 3, {self.camera.height}, {self.camera.width}), "
+                                 f"got {tuple(albedo.shape)}")
+            appearance = ("albedo", albedo.clamp(0, 1))
+        elif exemplar is not None:
+            appearance = ("z_da", self.ngp.appearance(exemplar=exemplar))
+        else:
+            z = latent(seed, dim) if seed is not None else torch.as_tensor(z_da, dtype=torch.float32).reshape(-1)
+            if z.shape != (dim,):
+                raise ValueError(f"set_appearance: z_da must have {dim} entries, got {tuple(z.shape)}")
+            appearance = ("z_da", z[None])
+        old, self._appearance = self._appearance, appearance
+        self._changed("appearance", old, appearance)
+        return self
+
+    def interpolate_appearance(self, a: torch.Tensor | int, b: torch.Tensor | int, t: float) -> "NGPScene":
+        """z_da = slerp(a, b, t) between two latents (or the latents of two seeds)."""
+        dim = self.ngp.maps.config.latent_dim
+        za, zb = (latent(x, dim) if isinstance(x, int) else torch.as_tensor(x).reshape(-1) for x in (a, b))
+        return self.set_appearance(slerp(za, zb, t))
+
+    def set_lights(self, lights: Sequence[Light], added: Sequence[Light] = ()) -> "NGPScene":
+        """The lights (directional or point, any number), and the lights NGP-plus adds by R_BP."""
+        old = (self.lights, self.added_lights)
+        self.lights, self.added_lights = list(lights), list(added)
+        self._changed("lights", old, (self.lights, self.added_lights))
+        return self
+
+    def set_variant(self, variant: str) -> "NGPScene":
+        _check_variant(variant, self.ngp.specular)
+        old, self.variant = self.variant, variant
+        self._changed("variant", old, variant)
+        return self
+
+    def set_constants(self, constants: Constants) -> "NGPScene":
+        """k_d, k_s, α of R_BP (and k_d of R_diff)."""
+        old, self.constants = self.constants, constants
+        self._changed("constants", old, constants)
+        return self
+
+    # ------------------------------------------------------------------ stages
+    def _stage(self, name: str, key: tuple, compute):
+        cached = self._cache.get(name)
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        value = compute()
+        self.stage_runs[name] += 1
+        self._cache[name] = (key, value)
+        return value
+
+    def _extract(self) -> TriangleMesh:
+        kind, value = self._shape
+        return value if kind == "mesh" else self.ngp.shape(value)
+
+    def _project(self, mesh: TriangleMesh) -> tuple[torch.Tensor, torch.Tensor]:
+        projected = project_depth(torch.as_tensor(mesh.vertices, dtype=torch.float32), mesh.faces, self.camera)
+        return projected.depth, projected.mask
+
+    def render(self, maps: bool = False) -> dict[str, torch.Tensor]:
+        """The image (1, 3, H, W, linear radiance); with ``maps``, also depth, mask, normal, albedo,
+        the shaded image before the blend and (variants that blend it) the specular map."""
+        if self._shape is None:
+            raise ValueError("render: set a shape first (set_shape)")
+        v, variant = self._versions, self.variant
+        k_shape = (v["shape"],)
+        mesh = self._stage("extract", k_shape, self._extract)
+        k_view = k_shape + (v["camera"],)
+        depth, mask = self._stage("project", k_view, lambda: self._project(mesh))
+        k_normal = k_view + (variant == "no_gn",)
+        normal = self._stage("normals", k_normal,
+                             lambda: generate_normals(self.ngp.maps, depth, mask, self.camera, variant))
+        kind, appearance = self._appearance
+        k_albedo = k_normal + (v["appearance"], variant == "no_gda")
+        albedo = self._stage("albedo", k_albedo, lambda: (
+            appearance * mask if kind == "albedo" and variant != "no_gda" else
+            generate_albedo(self.ngp.maps, depth, mask, self.camera, mesh.bounds, normal, appearance, variant)))
+        k_shade = k_albedo + (v["lights"], v["variant"], v["constants"])
+        shaded = self._stage("shade", k_shade, lambda: shade_maps(
+            normal, albedo, mask, depth, self.camera, self.lights, variant, self.constants, self.added_lights))
+        out = {"image": shaded}
+        specular = None
+        if variant in NEEDS_SPECULAR:
+            specular = self._stage("specular", k_albedo, lambda: realistic_specular(
+                self.ngp.maps, self.ngp.specular, normal, albedo, mask, self.camera))
+        out["image"] = self._stage("blend", k_shade + (specular is not None,),
+                                   lambda: shaded + specular if specular is not None else shaded)
+        if maps:
+            out.update(depth=depth, mask=mask, normal=normal, albedo=albedo, shaded=shaded)
+            if specular is not None:
+                out["specular"] = specular
+        return out

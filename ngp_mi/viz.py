@@ -1,9 +1,13 @@
-"""Images people look at: sRGB conversion, PNG writing (atomic), labelled contact sheets."""
+"""Images people look at: sRGB conversion, PNG writing (atomic), labelled contact sheets and grids, GIFs.
+
+Captions wrap to the width of their tile (a word wider than the tile breaks between letters), so
+they stay legible and apart at every tile size.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 from PIL import Image, ImageDraw
@@ -31,22 +35,92 @@ def save_png(path: str | Path, image: np.ndarray) -> Path:
     return path
 
 
+LINE_HEIGHT = 14  # pixels per caption line (PIL's default bitmap font is 11 px high)
+
+
+def wrap_label(draw: Any, text: str, width: float) -> list[str]:
+    """``text`` in lines no wider than ``width`` pixels: at spaces, and inside a word wider than that."""
+    lines: list[str] = []
+    line = ""
+    for word in text.split():
+        candidate = f"{line} {word}" if line else word
+        if draw.textlength(candidate) <= width:
+            line = candidate
+            continue
+        if line:
+            lines.append(line)
+        while len(word) > 1 and draw.textlength(word) > width:
+            cut = max(1, max((k for k in range(1, len(word)) if draw.textlength(word[:k]) <= width), default=1))
+            lines.append(word[:cut])
+            word = word[cut:]
+        line = word
+    return lines + [line] if line else lines or [""]
+
+
 def contact_sheet(images: Sequence[np.ndarray], labels: Sequence[str] | None = None, columns: int = 4,
-                  pad: int = 4, label_height: int = 14, background: int = 32) -> np.ndarray:
-    """Tile uint8 (H, W, 3) images of one size into a grid with a caption under each."""
+                  pad: int = 4, label_height: int = LINE_HEIGHT, background: int = 32) -> np.ndarray:
+    """Tile uint8 (H, W, 3) images of one size into a grid with a caption under each (wrapped to the tile)."""
     if not images:
         raise ValueError("contact_sheet needs at least one image")
     h, w = images[0].shape[:2]
     if any(im.shape[:2] != (h, w) for im in images):
         raise ValueError("contact_sheet images must share one size")
+    measure = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    wrapped = [wrap_label(measure, text, w - 2) for text in labels] if labels else None
     rows = -(-len(images) // columns)
-    cell_h = h + (label_height if labels else 0)
+    cell_h = h + (label_height * max(len(lines) for lines in wrapped) if wrapped else 0)
     sheet = Image.new("RGB", (columns * (w + pad) + pad, rows * (cell_h + pad) + pad), (background,) * 3)
     draw = ImageDraw.Draw(sheet)
     for i, image in enumerate(images):
         x, y = pad + (i % columns) * (w + pad), pad + (i // columns) * (cell_h + pad)
         tile = image if image.ndim == 3 else np.repeat(image[..., None], 3, -1)
         sheet.paste(Image.fromarray(tile[..., :3]), (x, y))
-        if labels:
-            draw.text((x + 2, y + h + 1), labels[i], fill=(220, 220, 220))
+        for j, line in enumerate(wrapped[i] if wrapped else ()):
+            draw.text((x + 2, y + h + 1 + j * label_height), line, fill=(220, 220, 220))
     return np.asarray(sheet)
+
+
+def labelled_grid(rows: Sequence[Sequence[np.ndarray]], row_labels: Sequence[str], column_labels: Sequence[str],
+                  pad: int = 4, background: int = 32, row_label_width: int = 96) -> np.ndarray:
+    """A grid of uint8 images of one size: a header over each column and a label left of each row
+    (what changes along a sweep), both wrapped to fit."""
+    if not rows or not rows[0]:
+        raise ValueError("labelled_grid needs at least one image")
+    h, w = rows[0][0].shape[:2]
+    columns = max(len(r) for r in rows)
+    if len(row_labels) != len(rows) or len(column_labels) != columns:
+        raise ValueError(f"labelled_grid: {len(rows)} rows x {columns} columns need as many labels, "
+                         f"got {len(row_labels)} and {len(column_labels)}")
+    measure = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    heads = [wrap_label(measure, text, w - 2) for text in column_labels]
+    sides = [wrap_label(measure, text, row_label_width - 4) for text in row_labels]
+    head_h = LINE_HEIGHT * max(len(lines) for lines in heads)
+    cell_h = max(h, LINE_HEIGHT * max(len(lines) for lines in sides))
+    sheet = Image.new("RGB", (row_label_width + columns * (w + pad) + pad, head_h + pad + len(rows) * (cell_h + pad)),
+                      (background,) * 3)
+    draw = ImageDraw.Draw(sheet)
+    for c, lines in enumerate(heads):
+        for j, line in enumerate(lines):
+            draw.text((row_label_width + pad + c * (w + pad) + 2, pad // 2 + j * LINE_HEIGHT), line, fill=(220, 220, 220))
+    for r, (row, lines) in enumerate(zip(rows, sides)):
+        y = head_h + pad + r * (cell_h + pad)
+        for j, line in enumerate(lines):
+            draw.text((2, y + j * LINE_HEIGHT), line, fill=(220, 220, 220))
+        for c, image in enumerate(row):
+            if image.shape[:2] != (h, w):
+                raise ValueError("labelled_grid images must share one size")
+            tile = image if image.ndim == 3 else np.repeat(image[..., None], 3, -1)
+            sheet.paste(Image.fromarray(tile[..., :3]), (row_label_width + pad + c * (w + pad), y))
+    return np.asarray(sheet)
+
+
+def save_animation(path: str | Path, frames: Sequence[np.ndarray], fps: float = 12.0) -> Path:
+    """Write uint8 frames (H, W, 3) as a looping animated GIF (imageio), atomically."""
+    import imageio.v3 as iio  # only animations need it
+
+    if not frames:
+        raise ValueError("save_animation needs at least one frame")
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        iio.imwrite(tmp, np.stack([f[..., :3] for f in frames]), extension=".gif", duration=1000.0 / fps, loop=0)
+    return path

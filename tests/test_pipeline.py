@@ -1,20 +1,17 @@
 """NGP inference (ngp_mi/pipeline.py): the variants' algebra and `ngp-mi generate` end to end."""
 
 import dataclasses
-import json
 import math
 
-import numpy as np
 import pytest
 import torch
 import trimesh
 
 from ngp_mi.camera import Camera
-from ngp_mi.cli import main
-from ngp_mi.lights import DirectionalLight, overhead_rig, save_lights
+from ngp_mi.lights import DirectionalLight, PointLight, overhead_rig
 from ngp_mi.models.maps import MapsConfig, MapsModel
 from ngp_mi.models.specular import SpecularConfig, SpecularModel
-from ngp_mi.pipeline import NGP, ngp_image
+from ngp_mi.pipeline import NGP, STAGES, NGPScene, at_training_distance, ngp_image, shade_maps
 from ngp_mi.render.depth import project_depth
 from ngp_mi.render.shading import PAPER_CONSTANTS, CameraLights, Constants, shade
 from ngp_mi.training.loop import save
@@ -62,29 +59,6 @@ def test_variants_compose_as_the_paper_says(runs, box_view):
         ngp_image(ngp.maps, ngp.specular, full["depth"], full["mask"], camera, mesh.bounds, z, rig, "ngp_best")
 
 
-def test_generate_writes_images_sheet_and_report(runs, box_view, tmp_path, capsys):
-    maps_run, shape_run = runs
-    lights = tmp_path / "lights.json"
-    save_lights(lights, [DirectionalLight((0.0, 1.0, 1.0), (1.5, 1.5, 1.5))])
-    code = main(["generate", "--maps-run", str(maps_run), "--shape-run", str(shape_run), "--out", str(tmp_path / "g"),
-                 "--num", "2", "--views", "10,-30;15,40", "--res", "32", "--variant", "ngp-plus", "--add-lights", str(lights)])
-    assert code == 0
-    summary = json.loads((tmp_path / "g" / "generate.json").read_text())
-    assert summary["variant"] == "ngp_plus" and len(summary["added_lights"]) == 1
-    files = [tmp_path / "g" / r["file"] for r in summary["images"]]
-    assert len(files) <= 4 and all(f.stat().st_size > 0 for f in files)
-    assert (tmp_path / "g" / "sheet.png").exists() and "![sheet](sheet.png)" in (tmp_path / "g" / "report.md").read_text()
-    # a user mesh and an exemplar albedo image instead of sampled latents
-    from PIL import Image
-
-    Image.fromarray(np.full((32, 32, 3), 180, np.uint8)).save(tmp_path / "albedo.png")
-    assert main(["generate", "--maps-run", str(maps_run), "--mesh", str(box_view), "--out", str(tmp_path / "m"),
-                 "--views", "5,0", "--res", "32", "--exemplar", str(tmp_path / "albedo.png")]) == 0
-    assert [r["shape"] for r in json.loads((tmp_path / "m" / "generate.json").read_text())["images"]] == ["mesh"]
-    assert main(["generate", "--maps-run", str(maps_run), "--out", str(tmp_path / "x")]) != 0
-    assert "--shape-run" in capsys.readouterr().err
-
-
 def test_a_model_trained_with_car_constants_is_shaded_with_them_everywhere(tmp_path):
     """k_d / k_s / α are the trained model's: R_diff, R_BP and G_sp^real's input all use k_d 0.6, k_s 0.4."""
     torch.manual_seed(1)
@@ -107,3 +81,104 @@ def test_a_model_trained_with_car_constants_is_shaded_with_them_everywhere(tmp_p
     torch.testing.assert_close(full["specular"], specular.specular(n, base, m))
     torch.testing.assert_close(full["image"], no_sp["image"] + full["specular"])
     assert not torch.allclose(no_sp["image"], shade(n, a, m, lights, camera, mode="diffuse", k_d=0.8) / math.pi)
+
+
+# ----------------------------------------------------------------------------- NGPScene: handles and stage caching
+
+def _runs_of(scene):
+    return dict(scene.stage_runs)
+
+
+def _delta(before, scene):
+    return {k: v - before[k] for k, v in scene.stage_runs.items() if v != before[k]}
+
+
+def test_each_handle_re_runs_only_its_stages(runs, box_view):
+    maps_run, shape_run = runs
+    scene = NGPScene(NGP(maps_run, shape_run), resolution=32).set_shape(mesh=box_view)
+    first = scene.render()["image"]
+    assert _runs_of(scene) == {stage: 1 for stage in STAGES}
+    before = _runs_of(scene)
+    assert torch.equal(scene.render()["image"], first) and _delta(before, scene) == {}  # nothing changed, nothing runs
+    scene.set_camera(theta=10.0, phi=-30.0).set_lights(overhead_rig()).set_shape(mesh=scene._shape[1]).render()
+    assert _delta(before, scene) == {}  # the values it had: not a change
+    scene.set_lights([DirectionalLight((0.3, 1.0, 0.5), (2.0, 1.5, 1.0)), PointLight((0.0, 1.0, 1.5), (4.0, 4.0, 4.0))])
+    changed = scene.render()["image"]
+    assert _delta(before, scene) == {"shade": 1, "blend": 1} and not torch.equal(changed, first)
+    before = _runs_of(scene)
+    scene.set_appearance(seed=5).render()
+    assert _delta(before, scene) == {"albedo": 1, "specular": 1, "shade": 1, "blend": 1}
+    before = _runs_of(scene)
+    scene.set_camera(theta=15, phi=40).render()
+    assert _delta(before, scene) == {stage: 1 for stage in STAGES if stage != "extract"}
+    before = _runs_of(scene)
+    scene.set_variant("ngp_bp").render()
+    assert _delta(before, scene) == {"shade": 1, "blend": 1}  # R_BP instead of R_diff; no G_sp^real
+    before = _runs_of(scene)
+    scene.set_constants(Constants(0.6, 0.4, 8.0)).render()
+    assert _delta(before, scene) == {"shade": 1, "blend": 1}
+    before = _runs_of(scene)
+    for seed in range(8):  # a latent of the tiny shape prior that gives a non-empty shape
+        try:
+            scene.set_shape(seed=seed).render()
+            break
+        except ValueError:
+            continue
+    assert _delta(before, scene)["extract"] >= 1 and _delta(before, scene)["blend"] == 1
+
+
+def test_the_scene_renders_what_ngp_image_renders(runs, box_view):
+    maps_run, _ = runs
+    ngp = NGP(maps_run)
+    from ngp_mi.geometry.loaders import load_mesh
+
+    mesh = load_mesh(box_view)
+    camera = Camera.orbit(12.0, 25.0, 32)
+    z = ngp.appearance(seed=2)
+    lights = [DirectionalLight((0.0, 1.0, 1.0), (1.5, 1.5, 1.5))]
+    for variant in ("ngp", "ngp_bp", "no_gn", "no_gda"):
+        scene = NGPScene(ngp, 32, variant).set_shape(mesh=mesh).set_camera(camera).set_appearance(z[0]).set_lights(lights)
+        got = scene.render(maps=True)
+        want = ngp.render(mesh, camera, z, lights, variant)
+        for name in ("image", "normal", "albedo", "depth", "mask"):
+            assert torch.allclose(got[name], want[name], atol=1e-6), (variant, name)
+
+
+def test_camera_distance_and_focal_length_keep_the_networks_in_their_depth_range(runs, box_view):
+    maps_run, _ = runs
+    scene = NGPScene(NGP(maps_run), resolution=32).set_shape(mesh=box_view)
+    near = scene.render(maps=True)
+    far_mask = scene.set_camera(theta=10, phi=-30, distance=3.0).render(maps=True)["mask"]
+    assert far_mask.sum() < 0.6 * near["mask"].sum()  # farther: smaller
+    zoomed = scene.set_camera(theta=10, phi=-30, distance=3.0, focal_mm=75.0).render(maps=True)
+    assert abs(float(zoomed["mask"].sum() - near["mask"].sum())) < 0.1 * float(near["mask"].sum())  # 75 mm at 3 = 50 at 2
+    # what G_n reads from the far camera is the depth range of the training distance
+    depth, mask = zoomed["depth"], zoomed["mask"]
+    moved = at_training_distance(depth, mask, scene.camera)
+    assert abs(float(moved[mask > 0].mean()) - float(near["depth"][near["mask"] > 0].mean())) < 0.05
+    assert torch.equal(moved[mask == 0], depth[mask == 0])
+
+
+def test_appearance_by_exemplar_interpolation_and_direct_editing(runs, box_view):
+    maps_run, _ = runs
+    ngp = NGP(maps_run)
+    scene = NGPScene(ngp, resolution=32, variant="ngp_bp").set_shape(mesh=box_view)
+    a = scene.set_appearance(seed=1).render(maps=True)
+    assert torch.allclose(scene.interpolate_appearance(1, 2, 0.0).render()["image"], a["image"], atol=1e-6)
+    exemplar = torch.full((1, 3, 32, 32), 0.7)
+    with torch.no_grad():
+        mu = ngp.maps.E_da(2 * exemplar - 1)[0]
+    b = scene.set_appearance(exemplar=exemplar).render(maps=True)
+    c = scene.set_appearance(mu[0]).render(maps=True)
+    assert torch.allclose(b["albedo"], c["albedo"])
+    edited = torch.zeros(1, 3, 32, 32)
+    edited[:, 0] = 0.9  # paint the object red
+    d = scene.set_appearance(albedo=edited).set_constants(Constants(0.8, 0.0, 4.0)).render(maps=True)
+    assert torch.equal(d["albedo"], edited * d["mask"])
+    expected = shade_maps(d["normal"], edited * d["mask"], d["mask"], d["depth"], scene.camera, scene.lights, "ngp_bp",
+                          scene.constants)
+    assert torch.allclose(d["image"], expected) and d["image"][:, 1:].max() == 0  # only red off a red albedo without k_s
+    with pytest.raises(ValueError, match="exactly one of"):
+        scene.set_appearance(seed=1, z_da=mu[0])
+    with pytest.raises(ValueError, match=r"albedo must be \(1, 3, 32, 32\)"):
+        scene.set_appearance(albedo=torch.zeros(1, 3, 16, 16))

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from ngp_mi.viz import contact_sheet, linear_to_srgb, save_png, to_uint8
+from ngp_mi.viz import contact_sheet, labelled_grid, linear_to_srgb, save_animation, save_png, to_uint8
 
 
 def test_srgb_transfer_function_known_values():
@@ -17,3 +17,28 @@ def test_contact_sheet_and_atomic_png(tmp_path):
     assert path.exists() and list(path.parent.iterdir()) == [path]
     with pytest.raises(ValueError, match="one size"):
         contact_sheet([tiles[0], np.zeros((4, 4, 3), np.uint8)])
+
+
+@pytest.mark.parametrize("size", [32, 64, 128])
+def test_captions_wrap_inside_their_tile_at_every_size(size):
+    labels = ["NGP-plus (rig + random)", "R_BP on ground-truth maps", "path tracer 1 spp", "NGP-BP_without_spaces_at_all"]
+    tiles = [np.full((size, size, 3), 200, np.uint8)] * 4
+    sheet = contact_sheet(tiles, labels, columns=4, pad=4)
+    below = sheet[4 + size:]  # the caption rows
+    for c in range(5):  # every gap between (and beside) the tiles stays background: no caption runs across
+        gap = below[:, c * (size + 4):c * (size + 4) + 4]
+        assert (gap == 32).all(), (size, c)
+    assert (below != 32).any()  # the captions are there
+
+
+def test_labelled_grid_and_animation(tmp_path):
+    tiles = [np.full((16, 16, 3), v, np.uint8) for v in (50, 150, 250)]
+    grid = labelled_grid([tiles, tiles], ["shape z0", "shape z1"], ["phi -30", "phi 0", "phi 30"], row_label_width=60)
+    assert grid.shape[1] == 60 + 3 * 20 + 4 and (grid[:, 60:] == 250).any()
+    with pytest.raises(ValueError, match="need as many labels"):
+        labelled_grid([tiles], ["a", "b"], ["x", "y", "z"])
+    import imageio.v3 as iio
+
+    path = save_animation(tmp_path / "orbit.gif", tiles, fps=10)
+    frames = iio.imread(path)
+    assert frames.shape == (3, 16, 16, 3) and list(tmp_path.iterdir()) == [path]

@@ -77,7 +77,8 @@ def normalized_vertices(vertices: np.ndarray, name: str = "mesh", radius: float 
         raise ValueError(f"{name}: {int((~np.isfinite(v)).any(1).sum())} vertices are not finite")
     lo, hi = v.min(0), v.max(0)
     centred = v - (lo + hi) / 2
-    extent = float(np.sqrt((centred ** 2).sum(1).max()))
+    with np.errstate(over="ignore"):  # coordinates near float64's limit: refused below, without a warning
+        extent = float(np.sqrt((centred ** 2).sum(1).max()))
     if not extent > 0 or not np.isfinite(extent):
         raise ValueError(f"{name}: all vertices coincide (size {extent:g}); cannot normalise")
     out = centred * (radius / extent)

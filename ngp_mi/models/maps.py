@@ -130,16 +130,20 @@ class MapsModel(BaseModel):
         noc = noc_from_depth_batch(depth, mask, batch["K"], batch["E"], batch["bounds"])
         return torch.where(mask > 0, 2 * noc - 1, -torch.ones_like(noc))
 
-    def generate_normals(self, depth_net: torch.Tensor, cameras: list[Camera]) -> torch.Tensor:
+    def generate_normals(self, depth_net: torch.Tensor, cameras: list[Camera],
+                         from_depth: torch.Tensor | None = None) -> torch.Tensor:
         """N^g = G_n(d). With ``normal_residual``, N^g = normalise(N_d + G_n(d)) on the object, N_d
         the finite-difference normals of d (no gradient through them: a lone pixel's zero-length
         cross product would send huge gradients into the depth). G_n then starts from the coarse
-        shape's normals and learns the detail, instead of learning the differentiation too."""
+        shape's normals and learns the detail, instead of learning the differentiation too.
+        ``from_depth``: N_d when the caller has it (of the true depth, where ``depth_net`` was moved
+        to the training distance)."""
         raw = self.G_n(depth_net)
         if not self.config.normal_residual:
             return raw
         depth, mask = net_to_depth(depth_net.detach())
-        from_depth = normals_from_depth(depth, mask, cameras)
+        if from_depth is None:
+            from_depth = normals_from_depth(depth, mask, cameras)
         return torch.where(mask > 0, torch.nn.functional.normalize(from_depth + raw, dim=1, eps=1e-6), raw)
 
     def decorate(self, depth: torch.Tensor, mask: torch.Tensor, views: dict[str, Any], z: torch.Tensor,
