@@ -159,6 +159,15 @@ class NGP:
         self.specular: SpecularModel | None = SpecularModel.from_run(maps_run)
         self.shape_model: ShapeModel | None = ShapeModel.from_run(shape_run) if shape_run else None
 
+    @classmethod
+    def of(cls, maps: MapsModel, specular: SpecularModel | None = None, shape_model: ShapeModel | None = None) -> "NGP":
+        """From models in memory (just trained, or built for a benchmark); they are put in eval mode."""
+        ngp = cls.__new__(cls)
+        ngp.maps, ngp.specular, ngp.shape_model = maps.eval(), specular and specular.eval(), shape_model
+        if shape_model is not None:
+            shape_model.eval()
+        return ngp
+
     def shape(self, z_s: torch.Tensor, resolution: int = 64) -> TriangleMesh:
         """G_shape(z_s) as a mesh (coarse-to-fine marching cubes)."""
         if self.shape_model is None:
