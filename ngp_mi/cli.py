@@ -273,9 +273,11 @@ def generate_flags(p: argparse.ArgumentParser) -> None:
     from ngp_mi.commands.generate import generate
 
     views = ";".join(f"{t:g},{f:g}" for t, f in default(generate, "views"))
-    p.add_argument("--maps-run", required=True, help="a `train maps` output folder (with the [specular] stage for "
-                                                     "ngp / ngp-plus)")
-    p.add_argument("--shape-run", help="a `train shape` output folder (shapes from z_s)")
+    p.add_argument("--model", help="a shipped model (chair, car) or a model folder (`ngp-mi export-model`); the "
+                                   "default when no --maps-run is given: chair")
+    p.add_argument("--maps-run", help="a `train maps` output folder (with the [specular] stage for ngp / ngp-plus) "
+                                      "instead of a shipped model")
+    p.add_argument("--shape-run", help="a `train shape` output folder (shapes from z_s), with --maps-run")
     p.add_argument("--mesh", help="a user mesh instead of sampled shapes")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--num", type=at_least(1), default=default(generate, "num"),
@@ -319,7 +321,8 @@ def generate(args: argparse.Namespace) -> int:
         views.append((theta, phi))
     lights = overhead_rig() if args.lights == "rig" else load_lights(args.lights)
     added = load_lights(args.add_lights) if args.add_lights else []
-    summary = generate(args.maps_run, args.out, shape_run=args.shape_run, mesh_path=args.mesh, num=args.num,
+    summary = generate(args.maps_run, args.out, shape_run=args.shape_run, mesh_path=args.mesh, model=args.model,
+                       num=args.num,
                        seed=args.seed, views=views, resolution=args.res, lights=lights, added_lights=added,
                        variant=args.variant.replace("-", "_"), exemplar=args.exemplar,
                        sweeps=Sweeps(orbit_camera=args.orbit_camera, orbit_light=args.orbit_light,
@@ -330,6 +333,26 @@ def generate(args: argparse.Namespace) -> int:
                        command=["ngp-mi", *args.argv])
     print(f"generate: {len(summary['images'])} images and {len(summary['sweep_files'])} sweep files in {args.out} "
           "(sheet.png, sweeps/, report.md)")
+    return 0
+
+
+def export_model_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--maps-run", required=True, help="a `train maps` output folder")
+    p.add_argument("--shape-run", help="a `train shape` output folder (G_shape)")
+    p.add_argument("--out", required=True, help="the model folder (ngp_mi/pretrained/NAME to ship it)")
+    p.add_argument("--family", default="", help="what the model draws (chair, car, …), for its card")
+    p.add_argument("--figures", help="a JSON file of evaluation figures to put on the card")
+    p.add_argument("--notes", default="", help="a line for the card (how it was trained, where)")
+
+
+def export_model(args: argparse.Namespace) -> int:
+    from ngp_mi.models.pretrained import export_model
+
+    figures = json.loads(open(args.figures).read()) if args.figures else None
+    out = export_model(args.out, args.maps_run, args.shape_run, family=args.family, figures=figures, notes=args.notes)
+    card = json.loads((out / "card.json").read_text())
+    total = sum(f["bytes"] for f in card["files"].values())
+    print(f"export-model: {out} ({', '.join(card['files'])}; {total / 2 ** 20:.1f} MiB)")
     return 0
 
 
@@ -386,6 +409,10 @@ COMMANDS: dict[str, tuple[Callable, Callable, str, str]] = {
                  "Mitsuba from the given views, generate normals and albedo, shade under the lights and blend the "
                  "realistic specular map. Writes images/, sheet.png (every intermediate map), generate.json and "
                  "report.md."),
+    "export-model": (export_model_flags, export_model, "a model folder of trained runs' inference networks and a card",
+                     "Write the inference networks of a `train maps` run (and a `train shape` run) as safetensors with "
+                     "a card.json (configs, recipes, steps, time, machine, figures): what `--model` loads and what "
+                     "ngp_mi/pretrained/ ships."),
     "evaluate": (evaluate_flags, evaluate, "evaluate trained map networks on held-out maps (normal error, albedo)",
                  "Normal angular error of G_n from a coarse depth against normals from the same depth (NGP w/o G_n); "
                  "E_da -> G_da albedo reconstruction and diversity."),

@@ -24,6 +24,7 @@ from ngp_mi.camera import PAPER_FOCAL_MM, PAPER_RADIUS, Camera
 from ngp_mi.geometry.mesh import TriangleMesh
 from ngp_mi.lights import Light, overhead_rig
 from ngp_mi.models.maps import DEPTH_CENTER, MapsModel, depth_to_net
+from ngp_mi.models.pretrained import load_model
 from ngp_mi.models.shape import ShapeModel
 from ngp_mi.models.specular import SpecularModel
 from ngp_mi.nets.networks import check_image_size
@@ -158,12 +159,22 @@ class NGP:
         self.maps: MapsModel = MapsModel.from_run(maps_run)
         self.specular: SpecularModel | None = SpecularModel.from_run(maps_run)
         self.shape_model: ShapeModel | None = ShapeModel.from_run(shape_run) if shape_run else None
+        self.card: dict | None = None  # a shipped model's card
+
+    @classmethod
+    def pretrained(cls, name_or_path: str | Path) -> "NGP":
+        """A shipped model (``chair``, ``car``) or a model folder written by ``ngp-mi export-model``."""
+        maps, specular, shape_model, card = load_model(name_or_path)
+        ngp = cls.of(maps, specular, shape_model)
+        ngp.card = card
+        return ngp
 
     @classmethod
     def of(cls, maps: MapsModel, specular: SpecularModel | None = None, shape_model: ShapeModel | None = None) -> "NGP":
         """From models in memory (just trained, or built for a benchmark); they are put in eval mode."""
         ngp = cls.__new__(cls)
         ngp.maps, ngp.specular, ngp.shape_model = maps.eval(), specular and specular.eval(), shape_model
+        ngp.card = None
         if shape_model is not None:
             shape_model.eval()
         return ngp

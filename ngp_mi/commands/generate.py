@@ -59,22 +59,31 @@ def orbit_light(step: int, steps: int, irradiance: float = 1.5, elevation_deg: f
                             (irradiance,) * 3)
 
 
-def generate(maps_run: str | Path, out: str | Path, shape_run: str | Path | None = None, mesh_path: str | None = None,
+def generate(maps_run: str | Path | None, out: str | Path, shape_run: str | Path | None = None,
+             mesh_path: str | None = None, model: str | None = None,
              num: int = 4, seed: int = 0, views: Sequence[tuple[float, float]] = ((10.0, -30.0), (10.0, 30.0)),
              resolution: int = 128, lights: Sequence[Light] | None = None, added_lights: Sequence[Light] = (),
              variant: str = "ngp", exemplar: str | None = None, sweeps: Sweeps = Sweeps(),
              command: Sequence[str] | None = None, log: Callable[[str], None] = print) -> dict[str, Any]:
     """``ngp-mi generate``: ``num`` shapes (z_s of ``seed`` …, or the user's mesh) × ``views`` (θ, φ in
-    degrees); writes ``images/*.png``, ``sheet.png`` (depth, normals, albedo, specular, image per
+    degrees) of the networks of ``maps_run`` (+ ``shape_run``) or of a shipped ``model`` (``chair``,
+    ``car`` or a model folder; the default when no run is named is ``chair``); writes ``images/*.png``, ``sheet.png`` (depth, normals, albedo, specular, image per
     row), the ``sweeps`` (``sweeps/*.png``, ``*.gif``), ``generate.json`` (the settings and
     ``command`` that re-run it) and ``report.md``."""
-    if not mesh_path and not shape_run:
-        raise ValueError("generate: give a `train shape` run (--shape-run) to sample shapes, or a --mesh")
+    if maps_run and model:
+        raise ValueError("generate: give --maps-run (training runs) or --model (a shipped model), not both")
+    if maps_run is None:
+        ngp = NGP.pretrained(model or "chair")
+        if ngp.shape_model is None and not mesh_path:
+            raise ValueError(f"generate: the model {model or 'chair'!r} has no shape prior; give a --mesh")
+    else:
+        if not mesh_path and not shape_run:
+            raise ValueError("generate: give a `train shape` run (--shape-run) to sample shapes, or a --mesh")
+        ngp = NGP(maps_run, shape_run if mesh_path is None else None)
     if sweeps.shape_seeds and mesh_path:
         raise ValueError("generate: --shape-seeds samples shapes: give --shape-run instead of --mesh")
     out = Path(out)
     lights = list(lights) if lights is not None else overhead_rig()
-    ngp = NGP(maps_run, shape_run if mesh_path is None else None)
     scene = NGPScene(ngp, resolution, variant).set_lights(lights, added_lights)
     exemplar_tensor = _exemplar(exemplar, resolution) if exemplar else None
     shapes = _shapes(scene, mesh_path, seed, num, exemplar_tensor)
@@ -102,7 +111,8 @@ def generate(maps_run: str | Path, out: str | Path, shape_run: str | Path | None
     names = ["coarse depth", "normals", "albedo", "specular", "image"]
     save_png(out / "sheet.png", labelled_grid(rows, labels, names))
     swept = _sweeps(scene, shapes, views[0], sweeps, seed, out, log)
-    settings = {"maps_run": str(maps_run), "shape_run": str(shape_run) if shape_run else None, "mesh": mesh_path,
+    settings = {"maps_run": str(maps_run) if maps_run else None, "shape_run": str(shape_run) if shape_run else None,
+                "model": None if maps_run else (model or "chair"), "mesh": mesh_path,
                 "num": num, "seed": seed, "views": [list(v) for v in views], "variant": variant,
                 "resolution": resolution, "lights": json.loads(lights_to_json(lights)),
                 "added_lights": json.loads(lights_to_json(added_lights)), "exemplar": exemplar,
@@ -205,11 +215,13 @@ def _image(result: dict[str, torch.Tensor]) -> np.ndarray:
 
 def _report(settings: dict[str, Any], labels: list[str], names: list[str], swept: dict[str, str],
             command: Sequence[str] | None) -> str:
+    networks = f"`{settings['maps_run']}`" if settings["maps_run"] else f"the shipped model `{settings['model']}`"
+    prior = settings["shape_run"] or settings["model"]
     shapes = (f"`{settings['mesh']}`" if settings["mesh"] else
-              f"G_shape of `{settings['shape_run']}`, z_s seeds {settings['seed']}…{settings['seed'] + settings['num'] - 1}")
+              f"G_shape of `{prior}`, z_s seeds {settings['seed']}…{settings['seed'] + settings['num'] - 1}")
     appearance = f"E_da of `{settings['exemplar']}`" if settings["exemplar"] else "z_da ~ N(0, I), one per shape"
     added = f" + {len(settings['added_lights'])} added" if settings["added_lights"] else ""
-    text = (f"# NGP images ({settings['variant']})\n\nMaps: `{settings['maps_run']}`; shapes: {shapes}; appearance: "
+    text = (f"# NGP images ({settings['variant']})\n\nMaps: {networks}; shapes: {shapes}; appearance: "
             f"{appearance}; {len(settings['lights'])} light(s){added}; {settings['resolution']}².\n\n"
             + (f"Re-run: `{' '.join(command)}`\n\n" if command else "")
             + "Rows: one view each (" + ", ".join(labels) + "); columns: " + ", ".join(names)

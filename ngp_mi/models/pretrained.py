@@ -1,0 +1,137 @@
+"""Shipped models: the inference networks of one family's NGP in one folder, weights only, with a card.
+
+Layout of a model folder (``ngp_mi/pretrained/<name>/`` inside the package, or any folder)::
+
+    maps.safetensors    G_n, G_da, E_da and, with the realistic specular stage, G_sp (prefixed by name)
+    shape.safetensors   G_shape: the implicit decoder and the latent generator (optional)
+    card.json           family, the models' configs, the recipes, steps, training time, machine,
+                        the evaluation figures, and the sha256 of each weights file
+
+Training keeps discriminators, the encoders used only by the cycles (G_depth, F_sp, the voxel
+encoder) and optimiser states in its checkpoints; a shipped model drops them (a ``cpu`` model is a
+few MB). Loading reads safetensors and JSON only: nothing is executed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import platform
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from ngp_mi.atomic import atomic_path, write_json
+from ngp_mi.models.base import config_from_dict
+from ngp_mi.models.checkpoint import newest_readable
+from ngp_mi.models.maps import MapsConfig, MapsModel
+from ngp_mi.models.shape import ShapeConfig, ShapeModel
+from ngp_mi.models.specular import SpecularConfig, SpecularModel
+
+PRETRAINED_ROOT = Path(__file__).resolve().parents[1] / "pretrained"
+INFERENCE_NETWORKS = {"maps": ("G_n", "G_da", "E_da"), "specular": ("G_sp",), "shape": ("decoder", "G_latent")}
+
+
+def available() -> list[str]:
+    """Names of the models shipped in the package."""
+    return sorted(p.name for p in PRETRAINED_ROOT.glob("*") if (p / "card.json").exists())
+
+
+def resolve(name_or_path: str | Path) -> Path:
+    """A shipped model's folder by name (``chair``, ``car``), or a model folder; the error lists what exists."""
+    path = Path(name_or_path)
+    if (path / "card.json").exists():
+        return path
+    if (PRETRAINED_ROOT / str(name_or_path) / "card.json").exists():
+        return PRETRAINED_ROOT / str(name_or_path)
+    shipped = ", ".join(available()) or f"none shipped in this install: {PRETRAINED_ROOT} holds no model"
+    raise ValueError(f"--model {name_or_path!r}: not a shipped model ({shipped}) nor a folder with card.json; "
+                     "`ngp-mi export-model` writes one from training runs")
+
+
+def _tensors(model: Any, names: tuple[str, ...], prefix: str) -> dict[str, torch.Tensor]:
+    return {f"{prefix}.{name}.{key}": value.detach().contiguous().cpu()
+            for name in names for key, value in getattr(model, name).state_dict().items()}
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _run_facts(run: Path) -> dict[str, Any]:
+    """Steps, training time and recipe of a run (from its newest checkpoint and log)."""
+    path, state = newest_readable(run)
+    facts: dict[str, Any] = {"run": str(run), "checkpoint": path.name, "steps": int(state["step"]),
+                             "recipe": json.loads(state["config"]) if "config" in state else None}
+    log = run / "log.jsonl"
+    if log.exists():
+        times = [json.loads(line).get("time") for line in log.read_text().splitlines() if line.strip()]
+        times = [t for t in times if t is not None]
+        if times:
+            facts["training_seconds"] = round(float(max(times)), 1)
+    return facts
+
+
+def export_model(out: str | Path, maps_run: str | Path, shape_run: str | Path | None = None, family: str = "",
+                 figures: dict[str, Any] | None = None, notes: str = "") -> Path:
+    """Write the inference networks of ``maps_run`` (and ``shape_run``) into the model folder ``out``."""
+    out = Path(out)
+    maps, specular = MapsModel.from_run(maps_run), SpecularModel.from_run(maps_run)
+    shape = ShapeModel.from_run(shape_run) if shape_run else None
+    out.mkdir(parents=True, exist_ok=True)
+    tensors = _tensors(maps, INFERENCE_NETWORKS["maps"], "maps")
+    configs: dict[str, Any] = {"maps": maps.config_dict()["maps"]}
+    if specular is not None:
+        tensors.update(_tensors(specular, INFERENCE_NETWORKS["specular"], "specular"))
+        configs["specular"] = specular.config_dict()["specular"]
+    files = {"maps.safetensors": tensors}
+    if shape is not None:
+        files["shape.safetensors"] = _tensors(shape, INFERENCE_NETWORKS["shape"], "shape")
+        configs["shape"] = shape.config_dict()["shape"]
+    for name, data in files.items():
+        with atomic_path(out / name) as tmp:
+            save_file(data, tmp)
+    card = {"family": family, "configs": configs, "maps": _run_facts(Path(maps_run)),
+            "shape": _run_facts(Path(shape_run)) if shape_run else None,
+            "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
+                        "torch": torch.__version__},
+            "figures": figures or {}, "notes": notes,
+            "files": {name: {"bytes": (out / name).stat().st_size, "sha256": _sha256(out / name)} for name in files}}
+    write_json(out / "card.json", card)
+    return out
+
+
+def _load_into(model: Any, tensors: dict[str, torch.Tensor], prefix: str, names: tuple[str, ...], file: Path) -> None:
+    for name in names:
+        own = {k[len(prefix) + len(name) + 2:]: v for k, v in tensors.items() if k.startswith(f"{prefix}.{name}.")}
+        try:
+            getattr(model, name).load_state_dict(own, strict=True)
+        except RuntimeError as exc:
+            raise ValueError(f"{file}: the weights do not fit {name} of the card's config "
+                             f"({str(exc).splitlines()[0]})") from None
+
+
+def load_model(name_or_path: str | Path) -> tuple[MapsModel, SpecularModel | None, ShapeModel | None, dict[str, Any]]:
+    """The models of a shipped model folder (eval mode, CPU) and its card."""
+    folder = resolve(name_or_path)
+    card = json.loads((folder / "card.json").read_text())
+    configs = card["configs"]
+    for name, facts in card.get("files", {}).items():
+        if (folder / name).exists() and _sha256(folder / name) != facts["sha256"]:
+            raise ValueError(f"{folder / name}: its sha256 differs from card.json's (a damaged or replaced file)")
+    weights = load_file(folder / "maps.safetensors")
+    maps = MapsModel(config_from_dict(MapsConfig, configs["maps"]))
+    _load_into(maps, weights, "maps", INFERENCE_NETWORKS["maps"], folder / "maps.safetensors")
+    specular = None
+    if "specular" in configs:
+        specular = SpecularModel(config_from_dict(SpecularConfig, configs["specular"]))
+        _load_into(specular, weights, "specular", INFERENCE_NETWORKS["specular"], folder / "maps.safetensors")
+    shape = None
+    if "shape" in configs:
+        shape = ShapeModel(config_from_dict(ShapeConfig, configs["shape"]))
+        _load_into(shape, load_file(folder / "shape.safetensors"), "shape", INFERENCE_NETWORKS["shape"],
+                   folder / "shape.safetensors")
+        shape.eval()
+    return maps.eval(), specular.eval() if specular is not None else None, shape, card

@@ -1,0 +1,80 @@
+"""Shipped models: export the inference networks of runs with a card; load them without code; the same images."""
+
+import json
+
+import pytest
+import torch
+import trimesh
+
+from ngp_mi.camera import Camera
+from ngp_mi.cli import main
+from ngp_mi.lights import overhead_rig
+from ngp_mi.models.pretrained import PRETRAINED_ROOT, available, export_model, load_model
+from ngp_mi.pipeline import NGP, NGPScene
+
+
+@pytest.fixture(scope="module")
+def exported(tiny_maps_run, tiny_run, tmp_path_factory):
+    out = tmp_path_factory.mktemp("model") / "chair_tiny"
+    return export_model(out, tiny_maps_run, tiny_run[0], family="chair", figures={"iou_held_out": 0.5},
+                        notes="a test"), tiny_maps_run, tiny_run[0]
+
+
+def test_an_exported_model_draws_what_its_runs_draw(exported, tmp_path):
+    folder, maps_run, shape_run = exported
+    card = json.loads((folder / "card.json").read_text())
+    assert card["family"] == "chair" and card["figures"] == {"iou_held_out": 0.5}
+    assert card["maps"]["steps"] > 0 and card["shape"]["steps"] > 0 and card["maps"]["recipe"]["model"]
+    assert set(card["configs"]) == {"maps", "specular", "shape"} and card["machine"]["torch"] == torch.__version__
+    assert sorted(p.name for p in folder.iterdir()) == ["card.json", "maps.safetensors", "shape.safetensors"]
+    # only what inference needs: no discriminators, cycle-only networks or optimiser states
+    from safetensors import safe_open
+
+    with safe_open(folder / "maps.safetensors", framework="pt") as f:
+        assert {k.split(".")[1] for k in f.keys()} == {"G_n", "G_da", "E_da", "G_sp"}
+    shipped, runs = NGP.pretrained(folder), NGP(maps_run, shape_run)
+    mesh_path = tmp_path / "box.obj"
+    trimesh.creation.box(extents=(0.6, 0.5, 0.4)).export(mesh_path)
+    for ngp in (shipped, runs):
+        ngp.image = NGPScene(ngp, 32).set_shape(mesh=mesh_path).set_camera(Camera.orbit(10, 20, 32)).render()["image"]
+    assert torch.equal(shipped.image, runs.image)
+    z = torch.randn(runs.shape_model.config.z_dim, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(shipped.shape_model.code_of(z), runs.shape_model.code_of(z))
+
+
+def test_a_damaged_or_unknown_model_is_refused_by_name(exported, tmp_path):
+    folder, _, _ = exported
+    with pytest.raises(ValueError, match=r"--model 'no-such': not a shipped model"):
+        load_model("no-such")
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    for f in folder.iterdir():
+        (broken / f.name).write_bytes(f.read_bytes())
+    data = bytearray((broken / "maps.safetensors").read_bytes())
+    data[-1] ^= 0xFF
+    (broken / "maps.safetensors").write_bytes(bytes(data))
+    with pytest.raises(ValueError, match=r"broken/maps.safetensors: its sha256 differs from card.json's"):
+        load_model(broken)
+
+
+def test_generate_takes_a_model_and_defaults_to_the_shipped_chair(exported, tmp_path, capsys):
+    folder, maps_run, _ = exported
+    assert main(["generate", "--model", str(folder), "--out", str(tmp_path / "g"), "--num", "1", "--views", "10,-30",
+                 "--res", "32"]) == 0
+    assert json.loads((tmp_path / "g" / "generate.json").read_text())["model"] == str(folder)
+    assert main(["generate", "--model", str(folder), "--maps-run", str(maps_run), "--out", str(tmp_path / "x")]) == 1
+    assert "not both" in capsys.readouterr().err
+    code = main(["generate", "--out", str(tmp_path / "default"), "--num", "1", "--views", "10,-30", "--res", "32"])
+    if "chair" in available():
+        assert code == 0
+    else:  # nothing shipped yet: the error says where shipped models live
+        assert code == 1 and str(PRETRAINED_ROOT) in capsys.readouterr().err
+
+
+def test_export_model_command(exported, tmp_path, capsys):
+    _, maps_run, _ = exported
+    assert main(["export-model", "--maps-run", str(maps_run), "--out", str(tmp_path / "m"), "--family", "chair"]) == 0
+    assert "maps.safetensors" in capsys.readouterr().out
+    maps, specular, shape, card = load_model(tmp_path / "m")
+    assert shape is None and specular is not None and card["shape"] is None
+    assert len(NGP.pretrained(tmp_path / "m").maps.lights) == len(overhead_rig())
