@@ -21,9 +21,11 @@ demo: setup
 	$(VENV)/bin/ngp-mi demo
 
 test: setup
+	@scripts/ensure-chromium.sh
 	$(PY) -m pytest -q
 
 test-slow: setup
+	@scripts/ensure-chromium.sh
 	$(PY) -m pytest -q -m slow
 
 bench: setup

@@ -83,12 +83,17 @@ def demo_flags(p: argparse.ArgumentParser) -> None:
                    help="samples per pixel (default: %(default)s)")
     p.add_argument("--seed", type=int, default=default(run_demo, "seed"),
                    help="random seed for views and noise (default: %(default)s)")
+    p.add_argument("--model", action="append", help="a shipped model or a model folder; repeat for several "
+                                                   "(default: every shipped model)")
+    p.add_argument("--frames", type=at_least(2), default=default(run_demo, "frames"),
+                   help="frames of each orbit (default: %(default)s)")
 
 
 def demo(args: argparse.Namespace) -> int:
     from ngp_mi.commands.demo import run_demo
 
-    run_demo(args.out, resolution=args.res, views=args.views, spp=args.spp, seed=args.seed)
+    run_demo(args.out, models=args.model, resolution=args.res, views=args.views, spp=args.spp, seed=args.seed,
+             frames=args.frames)
     return 0
 
 
@@ -382,9 +387,11 @@ def evaluate(args: argparse.Namespace) -> int:
 COMMANDS: dict[str, tuple[Callable, Callable, str, str]] = {
     "doctor": (doctor_flags, doctor, "print versions, backend and a timed test render; exit 0 if rendering works",
                "Print versions, the Mitsuba variant, libLLVM and a timed test render."),
-    "demo": (demo_flags, demo, "render the showcase contact sheets under outputs/demo",
-             "Path trace a procedural chair from the paper's view distribution under the 4-light overhead rig, "
-             "and 16 samples of each shape family."),
+    "demo": (demo_flags, demo, "the demo page outputs/demo/index.html: NGP under every handle, path-traced references",
+             "NGP of the shipped models (or --model folders) under every handle — camera and light orbits, "
+             "appearance and shape sweeps, an exemplar transfer, the variants, every intermediate map — and a "
+             "procedural chair path traced from the paper's view distribution, with 16 samples of each family, in "
+             "one HTML page."),
     "families": (families_flags, families, "contact sheet of samples of a procedural shape family",
                  "Path trace consecutive seeds of a procedural family (chair, car) with their part materials into "
                  "one contact sheet."),

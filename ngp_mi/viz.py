@@ -1,11 +1,14 @@
 """Images people look at: sRGB conversion, PNG writing (atomic), labelled contact sheets and grids, GIFs.
 
 Captions wrap to the width of their tile (a word wider than the tile breaks between letters), so
-they stay legible and apart at every tile size.
+they stay legible and apart at every tile size. Pillow's built-in font has no Greek or mathematical
+glyphs: captions are written with their names (``φ`` → ``phi``, ``⊕`` → ``+``, ``Π`` → ``Pi``), and
+the HTML and Markdown reports keep the symbols.
 """
 
 from __future__ import annotations
 
+import unicodedata
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -36,10 +39,22 @@ def save_png(path: str | Path, image: np.ndarray) -> Path:
 
 
 LINE_HEIGHT = 14  # pixels per caption line (PIL's default bitmap font is 11 px high)
+SYMBOL_NAMES = {"φ": "phi", "θ": "theta", "Π": "Pi", "π": "pi", "ρ": "rho", "α": "alpha", "μ": "mu", "σ": "sigma",
+                "λ": "lambda", "Ω": "Omega", "⊕": "+", "→": "->", "−": "-", "…": "...", "×": "x", "≤": "<=",
+                "≥": ">=", "²": "^2", "³": "^3", "·": "."}
+
+
+def drawable(text: str) -> str:
+    """``text`` in the characters Pillow's built-in font draws: symbols by name, accents dropped."""
+    named = "".join(SYMBOL_NAMES.get(c, c) for c in text)
+    plain = unicodedata.normalize("NFKD", named)
+    return "".join(c for c in plain if c.isascii() or c == "°")
 
 
 def wrap_label(draw: Any, text: str, width: float) -> list[str]:
-    """``text`` in lines no wider than ``width`` pixels: at spaces, and inside a word wider than that."""
+    """``text`` (made :func:`drawable`) in lines no wider than ``width`` pixels: at spaces, and inside a
+    word wider than that."""
+    text = drawable(text)
     lines: list[str] = []
     line = ""
     for word in text.split():

@@ -33,3 +33,12 @@ def tiny_run(tmp_path_factory):
 def tiny_maps_run(tmp_path_factory):
     """A `train maps` run of the tiny recipe cut to 2 map steps (+ its 3 G_sp^real steps), trained once."""
     return train_maps(maps_recipe(tmp_path_factory.mktemp("maps"), "run", iterations=2), log=lambda *_: None)
+
+
+@pytest.fixture(scope="session")
+def tiny_model(tiny_maps_run, tiny_run, tmp_path_factory):
+    """The tiny runs exported as a model folder (what `--model` loads), family chair."""
+    from ngp_mi.models.pretrained import export_model
+
+    return export_model(tmp_path_factory.mktemp("model") / "chair_tiny", tiny_maps_run, tiny_run[0], family="chair",
+                        figures={"iou_held_out": 0.5}, notes="a test")

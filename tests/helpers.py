@@ -197,3 +197,88 @@ def alive(pid: int) -> bool:
         return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] != "Z"
     except (OSError, IndexError):
         return False
+
+
+def chromium_binary() -> str:
+    """The headless browser `make test` installs (Debian's chromium)."""
+    import shutil
+
+    for name in ("chromium", "chromium-browser", "google-chrome"):
+        if shutil.which(name):
+            return shutil.which(name)
+    raise RuntimeError("no chromium found: `make test` installs Debian's chromium (scripts/ensure-chromium.sh)")
+
+
+def open_in_chromium(page: Path, timeout: float = 60.0) -> dict:
+    """Load ``page`` in a real headless Chromium over the DevTools protocol; returns every image of the
+    page with whether it loaded (``images``: [(src, loaded)]) and what the page logged as an error
+    (``errors``: console errors, exceptions, failed loads)."""
+    import json as _json
+    import tempfile
+    import time
+    import urllib.request
+
+    import websocket
+
+    profile = tempfile.mkdtemp(prefix="chromium-")
+    browser = subprocess.Popen([chromium_binary(), "--headless=new", "--no-sandbox", "--disable-gpu",
+                                "--remote-debugging-port=0", f"--user-data-dir={profile}", "--no-first-run",
+                                "about:blank"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        port_file = Path(profile) / "DevToolsActivePort"
+        deadline = time.monotonic() + timeout
+        while not port_file.exists() or not port_file.read_text().strip():
+            if time.monotonic() > deadline or browser.poll() is not None:
+                raise RuntimeError("chromium did not start")
+            time.sleep(0.1)
+        port = int(port_file.read_text().split()[0])
+        targets = _json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list").read())
+        ws = websocket.create_connection(next(t for t in targets if t["type"] == "page")["webSocketDebuggerUrl"],
+                                         timeout=timeout)
+        ids = iter(range(1, 10 ** 6))
+        errors: list[str] = []
+
+        def call(method: str, **params) -> dict:
+            own = next(ids)
+            ws.send(_json.dumps({"id": own, "method": method, "params": params}))
+            while True:
+                message = _json.loads(ws.recv())
+                if message.get("id") == own:
+                    return message.get("result", {})
+                note(message)
+
+        def note(message: dict) -> None:
+            method, params = message.get("method"), message.get("params", {})
+            if method == "Runtime.exceptionThrown":
+                errors.append(params["exceptionDetails"].get("text", "exception"))
+            elif method == "Runtime.consoleAPICalled" and params.get("type") == "error":
+                errors.append(" ".join(str(a.get("value", a.get("description"))) for a in params.get("args", [])))
+            elif method == "Log.entryAdded" and params["entry"]["level"] == "error":
+                errors.append(f"{params['entry'].get('text')} {params['entry'].get('url', '')}")
+
+        call("Runtime.enable")
+        call("Log.enable")
+        call("Page.enable")
+        call("Page.navigate", url=Path(page).resolve().as_uri())
+        while True:  # until the load event: every image has loaded or failed
+            message = _json.loads(ws.recv())
+            if message.get("method") == "Page.loadEventFired":
+                break
+            note(message)
+        result = call("Runtime.evaluate", returnByValue=True, expression=(
+            "Array.from(document.images).map(i => [i.getAttribute('src'), i.complete && i.naturalWidth > 0])"))
+        images = [tuple(x) for x in result["result"]["value"]]
+        ws.settimeout(0.5)
+        try:  # errors logged around the load event
+            while True:
+                note(_json.loads(ws.recv()))
+        except websocket.WebSocketTimeoutException:
+            pass
+        ws.close()
+        return {"images": images, "errors": errors}
+    finally:
+        browser.kill()
+        browser.wait()
+        import shutil
+
+        shutil.rmtree(profile, ignore_errors=True)

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from ngp_mi.viz import contact_sheet, labelled_grid, linear_to_srgb, save_animation, save_png, to_uint8
+from ngp_mi.viz import contact_sheet, drawable, labelled_grid, linear_to_srgb, save_animation, save_png, to_uint8
 
 
 def test_srgb_transfer_function_known_values():
@@ -42,3 +42,10 @@ def test_labelled_grid_and_animation(tmp_path):
     path = save_animation(tmp_path / "orbit.gif", tiles, fps=10)
     frames = iio.imread(path)
     assert frames.shape == (3, 16, 16, 3) and list(tmp_path.iterdir()) == [path]
+
+
+def test_symbols_the_font_lacks_are_written_by_name():
+    assert drawable("Π_v, φ 30°, R_diff ⊕ G_sp, μ(E_da), 128², café") == "Pi_v, phi 30°, R_diff + G_sp, mu(E_da), 128^2, cafe"
+    tiles = [np.full((64, 64, 3), 200, np.uint8)]
+    assert np.array_equal(contact_sheet(tiles, ["φ 30°"]), contact_sheet(tiles, ["phi 30°"]))
+    assert np.array_equal(labelled_grid([tiles], ["Π_v"], ["⊕"]), labelled_grid([tiles], ["Pi_v"], ["+"]))

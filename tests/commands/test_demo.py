@@ -1,17 +1,18 @@
-"""ngp-mi demo and families: contact sheets of path-traced procedural objects."""
+"""ngp-mi demo (its page, opened in a real headless Chromium) and families."""
 
 import json
 
 import numpy as np
-from helpers import run_cli
+from helpers import open_in_chromium, run_cli
 from PIL import Image
 
 from ngp_mi.commands.demo import run_demo
 
 
 def test_demo_writes_contact_sheets(tmp_path):
-    sheet = run_demo(tmp_path, resolution=32, views=3, spp=4, family_count=2, log=lambda *_: None)
-    image = np.asarray(Image.open(sheet))
+    page = run_demo(tmp_path, models=[], resolution=32, views=3, spp=4, family_count=2, log=lambda *_: None)
+    assert "No NGP model is shipped" in page.read_text()
+    image = np.asarray(Image.open(tmp_path / "views.png"))
     assert image.shape[0] > 32 and image.shape[1] > 4 * 32
     assert image.max() > 100  # something lit is in it
     meta = json.loads((tmp_path / "views.json").read_text())
@@ -25,3 +26,24 @@ def test_families_command_writes_a_sheet(tmp_path):
     done = run_cli("families", "car", "--count", "2", "--res", "24", "--spp", "2", "--out", str(out))
     assert done.returncode == 0, done.stderr
     assert Image.open(out).size[0] > 2 * 24
+
+
+def test_the_demo_page_shows_ngp_under_every_handle_in_a_real_browser(tiny_model, tmp_path):
+    messages = []
+    page = run_demo(tmp_path, models=[str(tiny_model)], resolution=32, views=2, spp=2, family_count=2, frames=4,
+                    log=messages.append)
+    text = page.read_text()
+    for section in ("camera orbit", "light orbit", "appearance and shape", "exemplar transfer",
+                    "variants and intermediate maps", "Reference"):
+        assert f"chair_tiny: {section}" in text or section == "Reference" and "<h2>Reference" in text, section
+    assert "No NGP model is shipped" not in text
+    assert any("images," in m and "/s)" in m for m in messages)  # progress: count and rate
+    seen = open_in_chromium(page)
+    assert len(seen["images"]) == 9 + 3, seen["images"]  # 9 of NGP, 3 path-traced references
+    assert all(loaded for _, loaded in seen["images"]), [src for src, ok in seen["images"] if not ok]
+    assert seen["errors"] == []
+    assert {src.rsplit(".", 1)[1] for src, _ in seen["images"]} == {"png", "gif"}
+    # a missing image is caught: the check is not vacuous
+    (tmp_path / "chair_tiny" / "variants.png").unlink()
+    seen = open_in_chromium(page)
+    assert ("chair_tiny/variants.png", False) in seen["images"] and any("variants.png" in e for e in seen["errors"])

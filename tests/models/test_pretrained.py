@@ -9,15 +9,13 @@ import trimesh
 from ngp_mi.camera import Camera
 from ngp_mi.cli import main
 from ngp_mi.lights import overhead_rig
-from ngp_mi.models.pretrained import PRETRAINED_ROOT, available, export_model, load_model
+from ngp_mi.models.pretrained import PRETRAINED_ROOT, available, load_model
 from ngp_mi.pipeline import NGP, NGPScene
 
 
 @pytest.fixture(scope="module")
-def exported(tiny_maps_run, tiny_run, tmp_path_factory):
-    out = tmp_path_factory.mktemp("model") / "chair_tiny"
-    return export_model(out, tiny_maps_run, tiny_run[0], family="chair", figures={"iou_held_out": 0.5},
-                        notes="a test"), tiny_maps_run, tiny_run[0]
+def exported(tiny_model, tiny_maps_run, tiny_run):
+    return tiny_model, tiny_maps_run, tiny_run[0]
 
 
 def test_an_exported_model_draws_what_its_runs_draw(exported, tmp_path):
