@@ -20,6 +20,7 @@ and the process's peak resident memory.
 from __future__ import annotations
 
 import argparse
+import math
 import platform
 import resource
 import statistics
@@ -35,6 +36,8 @@ from ngp_mi.lights import DirectionalLight
 from ngp_mi.models.base import config_from_dict
 from ngp_mi.models.maps import MapsConfig, MapsModel
 from ngp_mi.models.specular import SpecularConfig, SpecularModel
+from ngp_mi.camera import Camera
+from ngp_mi.commands.view import ViewerState, pose_of
 from ngp_mi.pipeline import NGP, NGPScene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -79,6 +82,16 @@ def main() -> None:
         new_light = median_ms(lambda k: scene.set_lights([DirectionalLight((0.1 * k, 1.0, 1.0), (2.0, 2.0, 2.0))])
                               .render(), args.repeats)
         rows.append((res, new_shape, new_view, new_look, new_light))
+    viewer_rows = []
+    for res in (int(r) for r in args.res.split(",")):  # `ngp-mi view`: the same plus the page's uint8 image
+        state = ViewerState(ngp, res, mesh=meshes[0])
+        camera = state.scene.camera
+        light = median_ms(lambda k: state.set_lights([DirectionalLight((0.1 * k, 1.0, 1.0), (2.0, 2.0, 2.0))])
+                          or state.render(camera), args.repeats)
+        moved = median_ms(lambda k: state.render(state.camera_for(*pose_of(Camera.orbit(10, -40.0 + 5 * k, res)),
+                                                                  2 * math.atan(res / 2 / camera.focal_px), 1.0)),
+                          args.repeats)
+        viewer_rows.append((res, light, moved))
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"# bench_pipeline — {time.strftime('%Y-%m-%d')}, {platform.machine()}, torch {torch.__version__} "
           f"({torch.get_num_threads()} threads), {backend.load().variant}; variant {args.variant}; "
@@ -87,6 +100,10 @@ def main() -> None:
     print("| resolution | new shape (mesh) ms | new view ms | new appearance ms | light change ms |\n|---|---|---|---|---|")
     for res, *ms in rows:
         print(f"| {res}² | " + " | ".join(f"{m:.1f}" for m in ms) + " |")
+    print("\n`ngp-mi view` (ViewerState: the render and the page's uint8 image)\n")
+    print("| resolution | light change ms | camera change ms |\n|---|---|---|")
+    for res, light, moved in viewer_rows:
+        print(f"| {res}² | {light:.1f} | {moved:.1f} |")
     print(f"\npeak RSS {peak:.0f} MiB")
 
 

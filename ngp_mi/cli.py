@@ -341,6 +341,29 @@ def generate(args: argparse.Namespace) -> int:
     return 0
 
 
+def view_flags(p: argparse.ArgumentParser) -> None:
+    from ngp_mi.commands.view import view
+
+    p.add_argument("--model", help="a shipped model (chair, car) or a model folder (default: chair)")
+    p.add_argument("--maps-run", help="a `train maps` output folder instead of a model")
+    p.add_argument("--shape-run", help="a `train shape` output folder, with --maps-run")
+    p.add_argument("--mesh", help="a mesh to show (needed when the model has no shape prior)")
+    p.add_argument("--host", default=default(view, "host"), help="address to serve on (default: %(default)s, this "
+                                                                   "machine only)")
+    p.add_argument("--port", type=at_least(1), default=default(view, "port"), help="port (default: %(default)s)")
+    p.add_argument("--res", type=network_size, default=default(view, "resolution"),
+                   help="image height when the camera stops (default: %(default)s)")
+    p.add_argument("--out", default=default(view, "out"), help="where 'save image' writes (default: %(default)s)")
+
+
+def view(args: argparse.Namespace) -> int:
+    from ngp_mi.commands.view import view
+
+    view(model=args.model, mesh=args.mesh, maps_run=args.maps_run, shape_run=args.shape_run, host=args.host,
+         port=args.port, resolution=args.res, out=args.out)
+    return 0
+
+
 def export_model_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--maps-run", required=True, help="a `train maps` output folder")
     p.add_argument("--shape-run", help="a `train shape` output folder (G_shape)")
@@ -416,6 +439,10 @@ COMMANDS: dict[str, tuple[Callable, Callable, str, str]] = {
                  "Mitsuba from the given views, generate normals and albedo, shade under the lights and blend the "
                  "realistic specular map. Writes images/, sheet.png (every intermediate map), generate.json and "
                  "report.md."),
+    "view": (view_flags, view, "an interactive NGP viewer in the browser (viser): every handle, live",
+             "Serve a page on which you orbit, pan and zoom the NGP image, drag lights as gizmos and set shape, "
+             "appearance, variant, constants, the map shown and the resolution; save images with their settings "
+             "and write them as generate command lines."),
     "export-model": (export_model_flags, export_model, "a model folder of trained runs' inference networks and a card",
                      "Write the inference networks of a `train maps` run (and a `train shape` run) as safetensors with "
                      "a card.json (configs, recipes, steps, time, machine, figures): what `--model` loads and what "

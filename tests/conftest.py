@@ -42,3 +42,19 @@ def tiny_model(tiny_maps_run, tiny_run, tmp_path_factory):
 
     return export_model(tmp_path_factory.mktemp("model") / "chair_tiny", tiny_maps_run, tiny_run[0], family="chair",
                         figures={"iou_held_out": 0.5}, notes="a test")
+
+
+@pytest.fixture(scope="session")
+def box_obj(tmp_path_factory):
+    """A box mesh file (0.6 x 0.5 x 0.4) a user might bring."""
+    import trimesh
+
+    path = tmp_path_factory.mktemp("mesh") / "box.obj"
+    trimesh.creation.box(extents=(0.6, 0.5, 0.4)).export(path)
+    return path
+
+
+@pytest.fixture(scope="session")
+def runs(tiny_maps_run, tiny_run):
+    """(the tiny maps run, the tiny shape run)."""
+    return tiny_maps_run, tiny_run[0]

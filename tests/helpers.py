@@ -209,76 +209,114 @@ def chromium_binary() -> str:
     raise RuntimeError("no chromium found: `make test` installs Debian's chromium (scripts/ensure-chromium.sh)")
 
 
-def open_in_chromium(page: Path, timeout: float = 60.0) -> dict:
-    """Load ``page`` in a real headless Chromium over the DevTools protocol; returns every image of the
-    page with whether it loaded (``images``: [(src, loaded)]) and what the page logged as an error
-    (``errors``: console errors, exceptions, failed loads)."""
-    import json as _json
-    import tempfile
-    import time
-    import urllib.request
+class Chromium:
+    """A real headless Chromium driven over the DevTools protocol: navigate, evaluate, click, screenshots;
+    ``errors`` collects what pages log as errors (console errors, exceptions, failed loads)."""
 
-    import websocket
+    def __init__(self, timeout: float = 60.0, size: tuple[int, int] = (1200, 800)):
+        import json as _json
+        import tempfile
+        import time
+        import urllib.request
 
-    profile = tempfile.mkdtemp(prefix="chromium-")
-    browser = subprocess.Popen([chromium_binary(), "--headless=new", "--no-sandbox", "--disable-gpu",
-                                "--remote-debugging-port=0", f"--user-data-dir={profile}", "--no-first-run",
-                                "about:blank"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        port_file = Path(profile) / "DevToolsActivePort"
+        import websocket
+
+        self._json, self.timeout, self.errors, self._ids = _json, timeout, [], iter(range(1, 10 ** 9))
+        self.profile = tempfile.mkdtemp(prefix="chromium-")
+        self.process = subprocess.Popen([chromium_binary(), "--headless=new", "--no-sandbox", "--disable-gpu",
+                                         "--remote-debugging-port=0", f"--user-data-dir={self.profile}",
+                                         f"--window-size={size[0]},{size[1]}", "--no-first-run", "about:blank"],
+                                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        port_file = Path(self.profile) / "DevToolsActivePort"
         deadline = time.monotonic() + timeout
         while not port_file.exists() or not port_file.read_text().strip():
-            if time.monotonic() > deadline or browser.poll() is not None:
+            if time.monotonic() > deadline or self.process.poll() is not None:
+                self.close()
                 raise RuntimeError("chromium did not start")
             time.sleep(0.1)
         port = int(port_file.read_text().split()[0])
         targets = _json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list").read())
-        ws = websocket.create_connection(next(t for t in targets if t["type"] == "page")["webSocketDebuggerUrl"],
-                                         timeout=timeout)
-        ids = iter(range(1, 10 ** 6))
-        errors: list[str] = []
+        self.ws = websocket.create_connection(next(t for t in targets if t["type"] == "page")["webSocketDebuggerUrl"],
+                                              timeout=timeout)
+        for domain in ("Runtime", "Log", "Page"):
+            self.call(f"{domain}.enable")
 
-        def call(method: str, **params) -> dict:
-            own = next(ids)
-            ws.send(_json.dumps({"id": own, "method": method, "params": params}))
-            while True:
-                message = _json.loads(ws.recv())
-                if message.get("id") == own:
-                    return message.get("result", {})
-                note(message)
+    def _note(self, message: dict) -> None:
+        method, params = message.get("method"), message.get("params", {})
+        if method == "Runtime.exceptionThrown":
+            self.errors.append(params["exceptionDetails"].get("text", "exception"))
+        elif method == "Runtime.consoleAPICalled" and params.get("type") == "error":
+            self.errors.append(" ".join(str(a.get("value", a.get("description"))) for a in params.get("args", [])))
+        elif method == "Log.entryAdded" and params["entry"]["level"] == "error":
+            self.errors.append(f"{params['entry'].get('text')} {params['entry'].get('url', '')}")
 
-        def note(message: dict) -> None:
-            method, params = message.get("method"), message.get("params", {})
-            if method == "Runtime.exceptionThrown":
-                errors.append(params["exceptionDetails"].get("text", "exception"))
-            elif method == "Runtime.consoleAPICalled" and params.get("type") == "error":
-                errors.append(" ".join(str(a.get("value", a.get("description"))) for a in params.get("args", [])))
-            elif method == "Log.entryAdded" and params["entry"]["level"] == "error":
-                errors.append(f"{params['entry'].get('text')} {params['entry'].get('url', '')}")
+    def call(self, method: str, **params) -> dict:
+        own = next(self._ids)
+        self.ws.send(self._json.dumps({"id": own, "method": method, "params": params}))
+        while True:
+            message = self._json.loads(self.ws.recv())
+            if message.get("id") == own:
+                return message.get("result", {})
+            self._note(message)
 
-        call("Runtime.enable")
-        call("Log.enable")
-        call("Page.enable")
-        call("Page.navigate", url=Path(page).resolve().as_uri())
-        while True:  # until the load event: every image has loaded or failed
-            message = _json.loads(ws.recv())
+    def navigate(self, url: str) -> None:
+        """Open ``url`` and wait for its load event."""
+        self.call("Page.navigate", url=url)
+        while True:
+            message = self._json.loads(self.ws.recv())
             if message.get("method") == "Page.loadEventFired":
-                break
-            note(message)
-        result = call("Runtime.evaluate", returnByValue=True, expression=(
-            "Array.from(document.images).map(i => [i.getAttribute('src'), i.complete && i.naturalWidth > 0])"))
-        images = [tuple(x) for x in result["result"]["value"]]
-        ws.settimeout(0.5)
-        try:  # errors logged around the load event
+                return
+            self._note(message)
+
+    def evaluate(self, expression: str):
+        return self.call("Runtime.evaluate", expression=expression, returnByValue=True)["result"].get("value")
+
+    def click(self, x: float, y: float) -> None:
+        """A real mouse click at page coordinates."""
+        for kind in ("mousePressed", "mouseReleased"):
+            self.call("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1)
+
+    def screenshot(self) -> np.ndarray:
+        import base64
+        import io
+
+        from PIL import Image
+
+        data = base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
+        return np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
+
+    def drain(self, seconds: float = 0.5) -> None:
+        """Read the page's events for a while (errors logged after the last call)."""
+        import websocket
+
+        self.ws.settimeout(seconds)
+        try:
             while True:
-                note(_json.loads(ws.recv()))
+                self._note(self._json.loads(self.ws.recv()))
         except websocket.WebSocketTimeoutException:
             pass
-        ws.close()
-        return {"images": images, "errors": errors}
-    finally:
-        browser.kill()
-        browser.wait()
+        finally:
+            self.ws.settimeout(self.timeout)
+
+    def close(self) -> None:
         import shutil
 
-        shutil.rmtree(profile, ignore_errors=True)
+        if getattr(self, "ws", None) is not None:
+            self.ws.close()
+        self.process.kill()
+        self.process.wait()
+        shutil.rmtree(self.profile, ignore_errors=True)
+
+
+def open_in_chromium(page: Path, timeout: float = 60.0) -> dict:
+    """Load ``page`` in a real headless Chromium; returns every image of the page with whether it
+    loaded (``images``: [(src, loaded)]) and what the page logged as an error (``errors``)."""
+    browser = Chromium(timeout)
+    try:
+        browser.navigate(Path(page).resolve().as_uri())
+        images = [tuple(x) for x in browser.evaluate(
+            "Array.from(document.images).map(i => [i.getAttribute('src'), i.complete && i.naturalWidth > 0])")]
+        browser.drain()
+        return {"images": images, "errors": list(browser.errors)}
+    finally:
+        browser.close()

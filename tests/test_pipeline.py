@@ -17,24 +17,20 @@ from ngp_mi.render.shading import PAPER_CONSTANTS, CameraLights, Constants, shad
 from ngp_mi.training.loop import save
 
 
-@pytest.fixture(scope="module")
-def runs(tiny_maps_run, tiny_run):
-    return tiny_maps_run, tiny_run[0]
+@pytest.fixture
+def box_view(box_obj):
+    return box_obj
 
 
-@pytest.fixture(scope="module")
-def box_view(tmp_path_factory):
-    path = tmp_path_factory.mktemp("mesh") / "box.obj"
-    trimesh.creation.box(extents=(0.6, 0.5, 0.4)).export(path)
-    return path
-
-
-def test_variants_compose_as_the_paper_says(runs, box_view):
-    maps_run, _ = runs
-    ngp = NGP(maps_run)
+@pytest.fixture
+def ngp_and_box(runs, box_obj):
     from ngp_mi.geometry.loaders import load_mesh
 
-    mesh = load_mesh(box_view)
+    return NGP(runs[0]), load_mesh(box_obj)
+
+
+def test_variants_compose_as_the_paper_says(ngp_and_box):
+    ngp, mesh = ngp_and_box
     camera = Camera.orbit(15.0, 30.0, 32)
     z = ngp.appearance(seed=3)
     rig = overhead_rig()
@@ -127,12 +123,8 @@ def test_each_handle_re_runs_only_its_stages(runs, box_view):
     assert _delta(before, scene)["extract"] >= 1 and _delta(before, scene)["blend"] == 1
 
 
-def test_the_scene_renders_what_ngp_image_renders(runs, box_view):
-    maps_run, _ = runs
-    ngp = NGP(maps_run)
-    from ngp_mi.geometry.loaders import load_mesh
-
-    mesh = load_mesh(box_view)
+def test_the_scene_renders_what_ngp_image_renders(ngp_and_box):
+    ngp, mesh = ngp_and_box
     camera = Camera.orbit(12.0, 25.0, 32)
     z = ngp.appearance(seed=2)
     lights = [DirectionalLight((0.0, 1.0, 1.0), (1.5, 1.5, 1.5))]

@@ -4,23 +4,15 @@ import json
 
 import numpy as np
 import pytest
-import trimesh
 from PIL import Image
 
 from ngp_mi.cli import main
 from ngp_mi.lights import DirectionalLight, save_lights
 
 
-@pytest.fixture(scope="module")
-def runs(tiny_maps_run, tiny_run):
-    return tiny_maps_run, tiny_run[0]
-
-
-@pytest.fixture(scope="module")
-def box_view(tmp_path_factory):
-    path = tmp_path_factory.mktemp("mesh") / "box.obj"
-    trimesh.creation.box(extents=(0.6, 0.5, 0.4)).export(path)
-    return path
+@pytest.fixture
+def box_view(box_obj):
+    return box_obj
 
 
 def test_generate_writes_images_sheet_and_report(runs, box_view, tmp_path, capsys):
