@@ -341,6 +341,42 @@ def generate(args: argparse.Namespace) -> int:
     return 0
 
 
+def fit_shape_flags(p: argparse.ArgumentParser) -> None:
+    from ngp_mi.commands.fit_shape import FitConfig
+
+    p.add_argument("--targets", required=True, help="a render-dataset folder (masks and depths with their cameras)")
+    p.add_argument("--shape-id", help="which shape of it (default: the first)")
+    p.add_argument("--out", required=True, help="output folder (a killed fit resumes from it)")
+    p.add_argument("--held-out", type=at_least(0), default=default(FitConfig, "held_out"),
+                   help="the last K views are scored, not fitted (default: %(default)s)")
+    p.add_argument("--steps", type=at_least(1), default=default(FitConfig, "steps"), help="(default: %(default)s)")
+    p.add_argument("--lr", type=float, default=default(FitConfig, "lr"), help="Adam's step (default: %(default)s)")
+    p.add_argument("--lam", type=float, default=default(FitConfig, "lam"),
+                   help="λ of the preconditioner I + λL (default: %(default)s)")
+    p.add_argument("--start", default=default(FitConfig, "start"), help="'sphere' or a mesh file (default: %(default)s)")
+    p.add_argument("--mask-weight", type=float, default=default(FitConfig, "mask_weight"), help="(default: %(default)s)")
+    p.add_argument("--depth-weight", type=float, default=default(FitConfig, "depth_weight"),
+                   help="0 fits masks only (default: %(default)s)")
+    p.add_argument("--no-silhouette", action="store_true", help="interior gradients only (the fast Π_v)")
+    p.add_argument("--spp", type=at_least(1), default=default(FitConfig, "spp"), help="(default: %(default)s)")
+    p.add_argument("--boundary-spp", type=at_least(1), default=default(FitConfig, "boundary_spp"),
+                   help="samples per pixel of the silhouette term (default: %(default)s)")
+
+
+def fit_shape(args: argparse.Namespace) -> int:
+    from ngp_mi.commands.fit_shape import FitConfig, fit_shape
+
+    config = FitConfig(targets=args.targets, shape_id=args.shape_id, held_out=args.held_out, steps=args.steps,
+                       lr=args.lr, lam=args.lam, start=args.start, mask_weight=args.mask_weight,
+                       depth_weight=args.depth_weight, silhouette=not args.no_silhouette, spp=args.spp,
+                       boundary_spp=args.boundary_spp)
+    summary = fit_shape(config, args.out)
+    print(f"fit-shape: loss {summary['loss_start']:.5f} -> {summary['loss_end']:.5f}, mask IoU "
+          f"{summary['mask_iou_fitted']:.3f}" + (f", Chamfer-L2 {summary['chamfer_start']:.5f} -> "
+                                                 f"{summary['chamfer_end']:.5f}" if summary["chamfer_end"] else ""))
+    return 0
+
+
 def view_flags(p: argparse.ArgumentParser) -> None:
     from ngp_mi.commands.view import view
 
@@ -439,6 +475,10 @@ COMMANDS: dict[str, tuple[Callable, Callable, str, str]] = {
                  "Mitsuba from the given views, generate normals and albedo, shade under the lights and blend the "
                  "realistic specular map. Writes images/, sheet.png (every intermediate map), generate.json and "
                  "report.md."),
+    "fit-shape": (fit_shape_flags, fit_shape, "recover a shape from a dataset's views through the differentiable Π_v",
+                  "Fit a mesh (from a sphere or a mesh file) to the masks and depths of one shape of a render-dataset "
+                  "folder: vertices through the Laplacian parameterisation (largesteps), Π_v with silhouette "
+                  "gradients; writes fit.obj, curves, target-vs-fit sheet, a GIF of the fit and a report; resumable."),
     "view": (view_flags, view, "an interactive NGP viewer in the browser (viser): every handle, live",
              "Serve a page on which you orbit, pan and zoom the NGP image, drag lights as gizmos and set shape, "
              "appearance, variant, constants, the map shown and the resolution; save images with their settings "

@@ -1,0 +1,286 @@
+"""``ngp-mi fit-shape``: recover a shape from the views of a ``render-dataset`` folder through the
+differentiable depth projection Π_v (inverse rendering).
+
+The optimised mesh starts as a sphere (or a mesh file) and moves its vertices x through the
+Laplacian parameterisation u = (I + λ L) x (:mod:`ngp_mi.geometry.laplacian`, Nicolet et al. 2021)
+with Adam. Each step projects it into every fitted view with silhouette gradients
+(:func:`ngp_mi.render.depth.project_depth`, pixel-averaged coverage c and depth d̄) and minimises
+
+    L = w_mask · mean (c − m)² + w_depth · mean m·(d̄ − c·d)²,
+
+m and d the target mask and depth of each view (:func:`fit_losses`). The depth term only looks
+where the target has the object: the fit's depth over the target's background would pull the surface
+towards the camera (to depth 0), which the mask term avoids by shrinking the coverage instead. Views past ``--held-out`` are
+kept out of the fit and scored after it (mask IoU). Outputs: ``fit.obj``, ``curves.png``,
+``sheet.png`` (target against fit, per view), ``progress.gif`` (the fitted silhouette over the
+steps), ``fit.json`` and ``report.md``; with the shape's source known (a procedural family or a
+mesh file), the Chamfer-L2 to it at the start and at the end. A killed fit resumes from its last
+state (``state/``: safetensors + a weights-only optimiser state).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+
+from ngp_mi.atomic import atomic_path, write_json, write_text
+from ngp_mi.camera import Camera
+from ngp_mi.data.exr import read_exr
+from ngp_mi.data.manifest import load_manifest
+from ngp_mi.eval.shape_metrics import chamfer_distance
+from ngp_mi.geometry.families import generate
+from ngp_mi.geometry.laplacian import LargeSteps
+from ngp_mi.geometry.loaders import load_mesh
+from ngp_mi.geometry.mesh import TriangleMesh
+from ngp_mi.geometry.occupancy import surface_samples
+from ngp_mi.render.depth import project_depth
+from ngp_mi.viz import labelled_grid, save_animation, save_png, to_uint8
+
+
+@dataclasses.dataclass(frozen=True)
+class FitConfig:
+    targets: str  # a render-dataset folder
+    shape_id: str | None = None  # default: its first shape
+    held_out: int = 0  # the last views of the shape, scored but not fitted
+    steps: int = 150
+    lr: float = 3e-2
+    lam: float = 20.0  # λ of I + λ L
+    start: str = "sphere"  # "sphere" or a mesh file
+    sphere_radius: float = 0.4
+    sphere_subdivisions: int = 4
+    mask_weight: float = 1.0
+    depth_weight: float = 1.0
+    silhouette: bool = True  # silhouette gradients (else the fast Π_v: interior gradients only)
+    spp: int = 8
+    boundary_spp: int = 2
+    checkpoint_every: int = 25
+    frame_every: int = 10
+
+    def __post_init__(self) -> None:
+        for name in ("steps", "spp", "boundary_spp", "checkpoint_every", "frame_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
+        if not (self.lr > 0 and self.lam >= 0 and self.mask_weight >= 0 and self.depth_weight >= 0):
+            raise ValueError("--lr must be > 0 and --lam, --mask-weight, --depth-weight >= 0")
+        if self.mask_weight == 0 and self.depth_weight == 0:
+            raise ValueError("fit-shape needs a loss: --mask-weight or --depth-weight > 0")
+
+
+@dataclasses.dataclass
+class Targets:
+    cameras: list[Camera]
+    mask: torch.Tensor  # (N, 1, H, W)
+    depth: torch.Tensor  # (N, 1, H, W), 0 off the mask
+    record: dict[str, Any]  # the first view's manifest record
+
+
+def load_targets(root: str | Path, shape_id: str | None = None) -> Targets:
+    """The views of one shape of a render-dataset folder; errors name the folder, shape or file."""
+    records = load_manifest(root)
+    shape_id = shape_id or records[0]["shape_id"]
+    mine = [r for r in records if r["shape_id"] == shape_id]
+    if not mine:
+        shapes = sorted({r["shape_id"] for r in records})
+        raise ValueError(f"{root}: no views of shape {shape_id!r} (it has {', '.join(shapes[:5])}…)")
+    cameras, masks, depths = [], [], []
+    for r in mine:
+        channels = set(r["channels"])
+        if not {"mask", "depth"} <= channels:
+            raise ValueError(f"{root}/{r['files']['maps']}: needs mask and depth channels, has {sorted(channels)}")
+        try:
+            cameras.append(Camera.from_K_E(np.asarray(r["K"]), np.asarray(r["E"]), r["width"], r["height"]))
+        except (KeyError, ValueError) as exc:
+            raise ValueError(f"{root}: view {r['view']} of {shape_id}: no usable camera ({exc})") from None
+        maps = read_exr(Path(root) / r["files"]["maps"], ["mask", "depth"])
+        masks.append(maps["mask"])
+        depths.append(maps["depth"] * maps["mask"])
+    stack = lambda xs: torch.from_numpy(np.stack(xs)[:, None].astype(np.float32))  # noqa: E731
+    return Targets(cameras, stack(masks), stack(depths), mine[0])
+
+
+def fit_losses(coverage: torch.Tensor, depth: torch.Tensor, target_mask: torch.Tensor, target_depth: torch.Tensor,
+               mask_weight: float, depth_weight: float) -> dict[str, torch.Tensor]:
+    """The fit's named loss terms (module docstring) and their weighted sum ``total``."""
+    terms = {"mask": (coverage - target_mask).square().mean(),
+             "depth": (target_mask * (depth - coverage * target_depth)).square().mean()}
+    terms["total"] = mask_weight * terms["mask"] + depth_weight * terms["depth"]
+    return terms
+
+
+def _source_mesh(record: dict[str, Any]) -> TriangleMesh | None:
+    """The target's true shape when the dataset says where it came from."""
+    if record.get("source") == "procedural":
+        return generate(record["origin"], int(record["shape_id"].rsplit("/", 1)[1])).mesh()
+    if record.get("source") == "mesh" and Path(record["origin"]).exists():
+        return load_mesh(record["origin"])
+    return None
+
+
+def _chamfer(a: TriangleMesh, b: TriangleMesh, count: int = 4096) -> float:
+    rng = np.random.default_rng(0)
+    pa, pb = (torch.from_numpy(surface_samples(m, count, rng)).double() for m in (a, b))
+    return float(chamfer_distance(pa, pb))
+
+
+def _iou(coverage: torch.Tensor, mask: torch.Tensor) -> float:
+    a, b = coverage > 0.5, mask > 0.5
+    union = (a | b).sum()
+    return float((a & b).sum() / union) if union else 1.0
+
+
+def _start_mesh(config: FitConfig) -> TriangleMesh:
+    if config.start == "sphere":
+        import trimesh
+
+        sphere = trimesh.creation.icosphere(config.sphere_subdivisions, radius=config.sphere_radius)
+        return TriangleMesh(np.asarray(sphere.vertices, np.float32), np.asarray(sphere.faces), name="sphere")
+    return load_mesh(config.start)
+
+
+def fit_shape(config: FitConfig, out: str | Path, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Run (or resume) the fit; returns the summary written to ``fit.json``."""
+    out = Path(out)
+    targets = load_targets(config.targets, config.shape_id)
+    n = len(targets.cameras)
+    if not 0 <= config.held_out < n:
+        raise ValueError(f"--held-out {config.held_out}: the shape has {n} views; keep at least one to fit")
+    fitted = slice(0, n - config.held_out)
+    start = _start_mesh(config)
+    faces = start.faces
+    param = LargeSteps(faces, len(start.vertices), config.lam)
+    u = param.to_u(torch.as_tensor(start.vertices)).requires_grad_(True)
+    optimizer = torch.optim.Adam([u], lr=config.lr)
+    history: list[dict[str, float]] = []
+    frames: list[np.ndarray] = []
+    state_dir, step = out / "state", 0
+    settings = dataclasses.asdict(config)
+    if (state_dir / "state.json").exists():
+        saved = json.loads((state_dir / "state.json").read_text())
+        if saved["config"] != json.loads(json.dumps(settings)):
+            raise ValueError(f"{state_dir}: this fit was started with other settings; use a new --out")
+        u.data.copy_(load_file(state_dir / "u.safetensors")["u"])
+        optimizer.load_state_dict(torch.load(state_dir / "optimizer.pt", weights_only=True))
+        step, history = saved["step"], saved["history"]
+        log(f"fit-shape: resumed at step {step} from {state_dir}")
+    cams = targets.cameras[fitted]
+    began, first = time.perf_counter(), step
+    while step < config.steps:
+        vertices = param.vertices(u)
+        maps = project_depth(vertices, faces, cams, silhouette_grad=config.silhouette, spp=config.spp,
+                             boundary_spp=config.boundary_spp, seed=step)
+        terms = fit_losses(maps.mask, maps.depth, targets.mask[fitted], targets.depth[fitted], config.mask_weight,
+                           config.depth_weight)
+        optimizer.zero_grad(set_to_none=True)
+        terms["total"].backward()
+        if not torch.isfinite(u.grad).all():
+            raise RuntimeError(f"fit-shape: a non-finite gradient at step {step}; nothing of it was applied")
+        optimizer.step()
+        step += 1
+        history.append({"step": step, **{k: float(v.detach()) for k, v in terms.items()}})
+        if step % config.frame_every == 0 or step == 1:
+            frames.append(_overlay(maps.mask[0, 0].detach(), targets.mask[0, 0]))
+        rate = (step - first) / (time.perf_counter() - began)
+        if step % 10 == 0 or step == config.steps:
+            log(f"fit-shape: step {step}/{config.steps}  loss {history[-1]['total']:.5f}  {rate:.2f} steps/s  "
+                f"ETA {(config.steps - step) / rate:.0f} s")
+        if step % config.checkpoint_every == 0 or step == config.steps:
+            _save_state(state_dir, u, optimizer, step, history, settings)
+    return _finish(config, out, targets, param, u, faces, start, history, frames, log)
+
+
+def _overlay(fit: torch.Tensor, target: torch.Tensor) -> np.ndarray:
+    """Target in blue, fit in orange, both white."""
+    t, f = target.numpy() > 0.5, fit.numpy() > 0.5
+    image = np.zeros((*t.shape, 3), np.uint8)
+    image[t] = (60, 110, 230)
+    image[f] = (240, 150, 40)
+    image[t & f] = (235, 235, 235)
+    return image
+
+
+def _save_state(folder: Path, u: torch.Tensor, optimizer: torch.optim.Optimizer, step: int,
+                history: list[dict[str, float]], settings: dict[str, Any]) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    with atomic_path(folder / "u.safetensors") as tmp:
+        save_file({"u": u.detach().contiguous()}, tmp)
+    with atomic_path(folder / "optimizer.pt") as tmp:
+        torch.save(optimizer.state_dict(), tmp)
+    write_json(folder / "state.json", {"step": step, "history": history, "config": settings})  # last: it commits
+
+
+def _finish(config: FitConfig, out: Path, targets: Targets, param: LargeSteps, u: torch.Tensor, faces: np.ndarray,
+            start: TriangleMesh, history: list[dict[str, float]], frames: list[np.ndarray],
+            log: Callable[[str], None]) -> dict[str, Any]:
+    import trimesh
+
+    with torch.no_grad():
+        vertices = param.vertices(u).detach()
+        maps = project_depth(vertices, faces, targets.cameras)
+        before = project_depth(torch.as_tensor(start.vertices, dtype=torch.float32), faces, targets.cameras).mask
+    mesh = TriangleMesh(vertices.numpy(), faces, name="fit")
+    with atomic_path(out / "fit.obj") as tmp:
+        trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(tmp, file_type="obj")
+    n, fitted = len(targets.cameras), len(targets.cameras) - config.held_out
+    ious = [_iou(maps.mask[i, 0], targets.mask[i, 0]) for i in range(n)]
+    truth = _source_mesh(targets.record)
+    summary = {"config": dataclasses.asdict(config), "shape_id": targets.record["shape_id"], "views": n,
+               "fitted_views": fitted, "steps": len(history) and history[-1]["step"],
+               "loss_start": history[0]["total"] if history else None, "loss_end": history[-1]["total"],
+               "mask_iou_start": float(np.mean([_iou(before[i, 0], targets.mask[i, 0]) for i in range(fitted)])),
+               "mask_iou_fitted": float(np.mean(ious[:fitted])),
+               "mask_iou_held_out": float(np.mean(ious[fitted:])) if config.held_out else None,
+               "chamfer_start": _chamfer(start, truth) if truth is not None else None,
+               "chamfer_end": _chamfer(mesh, truth) if truth is not None else None}
+    _plot(history, out / "curves.png")
+    rows = [[_overlay(maps.mask[i, 0], targets.mask[i, 0]), _depth_tile(targets.depth[i, 0]),
+             _depth_tile(maps.depth[i, 0])] for i in range(n)]
+    save_png(out / "sheet.png", labelled_grid(rows, [f"view {i}{' (held out)' if i >= fitted else ''}, IoU {ious[i]:.3f}"
+                                                     for i in range(n)], ["mask: target / fit / both", "target depth",
+                                                                          "fitted depth"]))
+    if frames:
+        save_animation(out / "progress.gif", frames, fps=6)
+    write_json(out / "fit.json", summary)
+    chamfer = (f"Chamfer-L2 to the true shape {summary['chamfer_start']:.5f} → {summary['chamfer_end']:.5f}; "
+               if truth is not None else "")
+    write_text(out / "report.md", f"# fit-shape: {summary['shape_id']}\n\n{fitted} of {n} views fitted, "
+               f"{summary['steps']} steps; loss {summary['loss_start']:.5f} → {summary['loss_end']:.5f}; {chamfer}"
+               f"mask IoU {summary['mask_iou_fitted']:.3f} on the fitted views"
+               + (f", {summary['mask_iou_held_out']:.3f} on the held-out ones" if config.held_out else "")
+               + ".\n\n![curves](curves.png)\n\n![target and fit per view](sheet.png)\n\n![progress](progress.gif)\n")
+    log(f"fit-shape: wrote {out / 'fit.obj'}, {out / 'report.md'}")
+    return summary
+
+
+def _depth_tile(depth: torch.Tensor) -> np.ndarray:
+    d = depth.numpy()
+    shown = np.zeros_like(d)
+    m = d > 0
+    if m.any():
+        shown[m] = 1 - 0.8 * (d[m] - d[m].min()) / max(float(np.ptp(d[m])), 1e-6)
+    return to_uint8(np.repeat(shown[..., None], 3, -1), srgb=False)
+
+
+def _plot(history: list[dict[str, float]], path: Path) -> None:
+    import matplotlib  # only the curves need it
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = [h["step"] for h in history]
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for name in ("total", "mask", "depth"):
+        ax.semilogy(steps, [max(h[name], 1e-12) for h in history], label=name)
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss")
+    ax.legend()
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    plt.close(fig)

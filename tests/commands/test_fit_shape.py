@@ -1,0 +1,79 @@
+"""ngp-mi fit-shape: a sphere fitted to a procedural chair's masks and depths through Π_v; resume; bad input."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from safetensors.torch import load_file
+
+from ngp_mi.cli import main
+from ngp_mi.commands.fit_shape import FitConfig, fit_losses, fit_shape, load_targets
+from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
+
+
+@pytest.fixture(scope="module")
+def chair_views(tmp_path_factory):
+    out = tmp_path_factory.mktemp("targets")
+    render_dataset(DatasetConfig(source="chair", num_shapes=1, views=6, resolution=32, channels=("depth", "mask")),
+                   out, progress=False)
+    return out
+
+
+def test_a_sphere_becomes_the_chair(chair_views, tmp_path):
+    config = FitConfig(str(chair_views), held_out=1, steps=40, sphere_subdivisions=3, frame_every=5)
+    summary = fit_shape(config, tmp_path, log=lambda *_: None)
+    assert summary["chamfer_end"] < 0.35 * summary["chamfer_start"]
+    assert summary["loss_end"] < 0.3 * summary["loss_start"]
+    assert summary["mask_iou_fitted"] > max(0.6, summary["mask_iou_start"] + 0.15)
+    assert summary["mask_iou_held_out"] > 0.5  # views the fit never saw
+    mesh = trimesh.load(tmp_path / "fit.obj", force="mesh")
+    assert len(mesh.faces) == 1280 and np.isfinite(mesh.vertices).all()
+    for name in ("curves.png", "sheet.png", "progress.gif", "report.md"):
+        assert (tmp_path / name).stat().st_size > 0, name
+    assert "Chamfer-L2 to the true shape" in (tmp_path / "report.md").read_text()
+
+
+def test_a_killed_fit_resumes_where_its_state_was_saved(chair_views, tmp_path):
+    config = FitConfig(str(chair_views), steps=12, checkpoint_every=4, sphere_subdivisions=2)
+    fit_shape(config, tmp_path / "straight", log=lambda *_: None)
+
+    def kill_at_step_10(message):
+        if "step 10/" in message:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit_shape(config, tmp_path / "resumed", log=kill_at_step_10)
+    assert json.loads((tmp_path / "resumed" / "state" / "state.json").read_text())["step"] == 8
+    messages = []
+    fit_shape(config, tmp_path / "resumed", log=messages.append)
+    assert any("resumed at step 8" in m for m in messages)
+    a, b = (load_file(tmp_path / run / "state" / "u.safetensors")["u"] for run in ("straight", "resumed"))
+    torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+    with pytest.raises(ValueError, match="started with other settings"):
+        fit_shape(FitConfig(str(chair_views), steps=13, checkpoint_every=4, sphere_subdivisions=2),
+                  tmp_path / "resumed")
+
+
+def test_bad_targets_and_settings_are_named(chair_views, tmp_path, capsys):
+    with pytest.raises(ValueError, match="no views of shape 'car/000000'"):
+        load_targets(chair_views, "car/000000")
+    with pytest.raises(ValueError, match="--held-out 6: the shape has 6 views"):
+        fit_shape(FitConfig(str(chair_views), held_out=6), tmp_path)
+    with pytest.raises(ValueError, match="needs a loss"):
+        FitConfig(str(chair_views), mask_weight=0, depth_weight=0)
+    assert main(["fit-shape", "--targets", str(tmp_path / "nothing"), "--out", str(tmp_path / "o")]) == 1
+    assert "no manifest" in capsys.readouterr().err
+
+
+def test_the_loss_terms_are_named_and_zero_at_the_target():
+    mask = torch.zeros(2, 1, 8, 8)
+    mask[:, :, 2:6, 2:6] = 1
+    depth = 2.0 * mask
+    terms = fit_losses(mask, depth, mask, depth, 1.0, 1.0)
+    assert set(terms) == {"mask", "depth", "total"} and float(terms["total"]) == 0.0
+    assert float(fit_losses(mask * 0, depth, mask, depth, 1.0, 0.0)["total"]) == pytest.approx(16 / 64)
+    # depth where the target has no object costs nothing in the depth term (the mask term sees it)
+    spill = torch.ones(2, 1, 8, 8)
+    assert float(fit_losses(spill, 2.0 * spill, mask, depth, 0.0, 1.0)["total"]) == 0.0
