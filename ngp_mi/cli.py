@@ -353,7 +353,13 @@ def fit_shape_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lr", type=float, default=default(FitConfig, "lr"), help="Adam's step (default: %(default)s)")
     p.add_argument("--lam", type=float, default=default(FitConfig, "lam"),
                    help="λ of the preconditioner I + λL (default: %(default)s)")
-    p.add_argument("--start", default=default(FitConfig, "start"), help="'sphere' or a mesh file (default: %(default)s)")
+    p.add_argument("--start", default=default(FitConfig, "start"),
+                   help="'sphere', 'zs' (the shape prior's best latent, then z_s fitted) or a mesh file "
+                        "(default: %(default)s)")
+    p.add_argument("--model", help="with --start zs: a shipped model or model folder with a shape prior")
+    p.add_argument("--shape-run", help="with --start zs: a `train shape` output folder")
+    p.add_argument("--zs-steps", type=at_least(0), default=default(FitConfig, "zs_steps"),
+                   help="steps of z_s before the vertices (default: %(default)s)")
     p.add_argument("--mask-weight", type=float, default=default(FitConfig, "mask_weight"), help="(default: %(default)s)")
     p.add_argument("--depth-weight", type=float, default=default(FitConfig, "depth_weight"),
                    help="0 fits masks only (default: %(default)s)")
@@ -369,8 +375,15 @@ def fit_shape(args: argparse.Namespace) -> int:
     config = FitConfig(targets=args.targets, shape_id=args.shape_id, held_out=args.held_out, steps=args.steps,
                        lr=args.lr, lam=args.lam, start=args.start, mask_weight=args.mask_weight,
                        depth_weight=args.depth_weight, silhouette=not args.no_silhouette, spp=args.spp,
-                       boundary_spp=args.boundary_spp)
-    summary = fit_shape(config, args.out)
+                       boundary_spp=args.boundary_spp, zs_steps=args.zs_steps)
+    shape_model = None
+    if args.start == "zs":
+        from ngp_mi.models.shape import ShapeModel
+        from ngp_mi.pipeline import NGP
+
+        shape_model = ShapeModel.from_run(args.shape_run) if args.shape_run else (
+            NGP.pretrained(args.model or "chair").shape_model)
+    summary = fit_shape(config, args.out, shape_model)
     print(f"fit-shape: loss {summary['loss_start']:.5f} -> {summary['loss_end']:.5f}, mask IoU "
           f"{summary['mask_iou_fitted']:.3f}" + (f", Chamfer-L2 {summary['chamfer_start']:.5f} -> "
                                                  f"{summary['chamfer_end']:.5f}" if summary["chamfer_end"] else ""))

@@ -1,8 +1,10 @@
 """``ngp-mi fit-shape``: recover a shape from the views of a ``render-dataset`` folder through the
 differentiable depth projection Π_v (inverse rendering).
 
-The optimised mesh starts as a sphere (or a mesh file) and moves its vertices x through the
-Laplacian parameterisation u = (I + λ L) x (:mod:`ngp_mi.geometry.laplacian`, Nicolet et al. 2021)
+The optimised mesh starts as a sphere, a mesh file, or the shape prior's own shape (``start="zs"``:
+the best of ``zs_candidates`` latents by mask loss, then z_s itself optimised for ``zs_steps``
+through G_shape, the differentiable iso-surface link and Π_v — :func:`fit_latent`), and moves its
+vertices x through the Laplacian parameterisation u = (I + λ L) x (:mod:`ngp_mi.geometry.laplacian`, Nicolet et al. 2021)
 with Adam. Each step projects it into every fitted view with silhouette gradients
 (:func:`ngp_mi.render.depth.project_depth`, pixel-averaged coverage c and depth d̄) and minimises
 
@@ -52,7 +54,11 @@ class FitConfig:
     steps: int = 150
     lr: float = 3e-2
     lam: float = 20.0  # λ of I + λ L
-    start: str = "sphere"  # "sphere" or a mesh file
+    start: str = "sphere"  # "sphere", "zs" (the shape prior's best latent, then z_s fitted) or a mesh file
+    zs_candidates: int = 8
+    zs_steps: int = 60
+    zs_lr: float = 5e-2
+    extract_resolution: int = 48  # marching-cubes grid of G_shape's surface while z_s is fitted
     sphere_radius: float = 0.4
     sphere_subdivisions: int = 4
     mask_weight: float = 1.0
@@ -135,6 +141,63 @@ def _iou(coverage: torch.Tensor, mask: torch.Tensor) -> float:
     return float((a & b).sum() / union) if union else 1.0
 
 
+def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitConfig,
+               log: Callable[[str], None]) -> tuple[TriangleMesh, dict[str, Any]]:
+    """Phase (a): the best of ``zs_candidates`` latents by mask loss, then z_s fitted through G_shape.
+
+    A step whose latent gives an empty shape is undone and the step size halved (logged), so a fit
+    never stops on a shape with nothing to project.
+    """
+    from ngp_mi.pipeline import latent  # the one rule of seeded latents
+
+    for p in shape_model.parameters():
+        p.requires_grad_(False)  # only z_s moves
+    dim, cams = shape_model.config.z_dim, targets.cameras[fitted]
+    scores = []
+    for seed in range(config.zs_candidates):
+        extraction = shape_model.shape(latent(seed, dim), resolution=config.extract_resolution)
+        if extraction.mesh is None:
+            continue
+        with torch.no_grad():
+            maps = project_depth(torch.as_tensor(extraction.mesh.vertices, dtype=torch.float32), extraction.mesh.faces,
+                                 cams)
+        scores.append((float((maps.mask - targets.mask[fitted]).square().mean()), seed))
+    if not scores:
+        raise ValueError(f"fit-shape: none of {config.zs_candidates} latents of the shape prior gives a shape")
+    best_loss, best_seed = min(scores)
+    log(f"fit-shape: start z_s of seed {best_seed} (mask loss {best_loss:.4f}, best of {len(scores)})")
+    z = latent(best_seed, dim).clone().requires_grad_(True)
+    previous = z.detach().clone()
+    optimizer = torch.optim.Adam([z], lr=config.zs_lr)
+    history, halvings = [], 0
+    for step in range(config.zs_steps):
+        surface = shape_model.differentiable_surface(z, resolution=config.extract_resolution)
+        if surface is None:  # this z_s has no surface: undo the last step, take half of it
+            z.data.copy_(previous)
+            for group in optimizer.param_groups:
+                group["lr"] *= 0.5
+            halvings += 1
+            log(f"fit-shape: z_s step {step} gave an empty shape; undone, step size halved")
+            continue
+        vertices, faces = surface
+        maps = project_depth(vertices, faces, cams, silhouette_grad=config.silhouette, spp=config.spp,
+                             boundary_spp=config.boundary_spp, seed=step)
+        terms = fit_losses(maps.mask, maps.depth, targets.mask[fitted], targets.depth[fitted], config.mask_weight,
+                           config.depth_weight)
+        optimizer.zero_grad(set_to_none=True)
+        terms["total"].backward()
+        previous = z.detach().clone()
+        if torch.isfinite(z.grad).all():
+            optimizer.step()
+        history.append({"step": step + 1, **{k: float(v.detach()) for k, v in terms.items()}})
+    extraction = shape_model.shape(z.detach(), resolution=config.extract_resolution)
+    if extraction.mesh is None:
+        extraction = shape_model.shape(previous, resolution=config.extract_resolution)
+    log(f"fit-shape: z_s fitted, mask loss {history[0]['mask']:.4f} → {history[-1]['mask']:.4f}" if history else
+        "fit-shape: no z_s step")
+    return extraction.mesh, {"zs_seed": best_seed, "zs_history": history, "zs_halvings": halvings}
+
+
 def _start_mesh(config: FitConfig) -> TriangleMesh:
     if config.start == "sphere":
         import trimesh
@@ -144,15 +207,33 @@ def _start_mesh(config: FitConfig) -> TriangleMesh:
     return load_mesh(config.start)
 
 
-def fit_shape(config: FitConfig, out: str | Path, log: Callable[[str], None] = print) -> dict[str, Any]:
-    """Run (or resume) the fit; returns the summary written to ``fit.json``."""
+def fit_shape(config: FitConfig, out: str | Path, shape_model: Any = None,
+              log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Run (or resume) the fit; returns the summary written to ``fit.json``. ``shape_model``: the shape
+    prior (:class:`ngp_mi.models.shape.ShapeModel`) for ``start="zs"``."""
     out = Path(out)
     targets = load_targets(config.targets, config.shape_id)
     n = len(targets.cameras)
     if not 0 <= config.held_out < n:
         raise ValueError(f"--held-out {config.held_out}: the shape has {n} views; keep at least one to fit")
     fitted = slice(0, n - config.held_out)
-    start = _start_mesh(config)
+    latent_phase: dict[str, Any] = {}
+    if config.start == "zs":
+        if shape_model is None:
+            raise ValueError("fit-shape --start zs needs a shape prior: --model or --shape-run")
+        start_file = out / "state" / "start.safetensors"
+        if (out / "state" / "latent.json").exists():  # phase (a) is done: its mesh was kept
+            kept = load_file(start_file)
+            start = TriangleMesh(kept["vertices"].numpy(), kept["faces"].numpy(), name="G_shape(z_s)")
+            latent_phase = json.loads((out / "state" / "latent.json").read_text())
+        else:
+            start, latent_phase = fit_latent(shape_model, targets, fitted, config, log)
+            with atomic_path(start_file) as tmp:
+                save_file({"vertices": torch.as_tensor(start.vertices, dtype=torch.float32).contiguous(),
+                           "faces": torch.as_tensor(np.asarray(start.faces, np.int64)).contiguous()}, tmp)
+            write_json(out / "state" / "latent.json", latent_phase)  # last: it commits phase (a)
+    else:
+        start = _start_mesh(config)
     faces = start.faces
     param = LargeSteps(faces, len(start.vertices), config.lam)
     u = param.to_u(torch.as_tensor(start.vertices)).requires_grad_(True)
@@ -192,7 +273,7 @@ def fit_shape(config: FitConfig, out: str | Path, log: Callable[[str], None] = p
                 f"ETA {(config.steps - step) / rate:.0f} s")
         if step % config.checkpoint_every == 0 or step == config.steps:
             _save_state(state_dir, u, optimizer, step, history, settings)
-    return _finish(config, out, targets, param, u, faces, start, history, frames, log)
+    return _finish(config, out, targets, param, u, faces, start, history, frames, log, latent_phase)
 
 
 def _overlay(fit: torch.Tensor, target: torch.Tensor) -> np.ndarray:
@@ -217,16 +298,13 @@ def _save_state(folder: Path, u: torch.Tensor, optimizer: torch.optim.Optimizer,
 
 def _finish(config: FitConfig, out: Path, targets: Targets, param: LargeSteps, u: torch.Tensor, faces: np.ndarray,
             start: TriangleMesh, history: list[dict[str, float]], frames: list[np.ndarray],
-            log: Callable[[str], None]) -> dict[str, Any]:
-    import trimesh
-
+            log: Callable[[str], None], latent_phase: dict[str, Any]) -> dict[str, Any]:
     with torch.no_grad():
         vertices = param.vertices(u).detach()
         maps = project_depth(vertices, faces, targets.cameras)
         before = project_depth(torch.as_tensor(start.vertices, dtype=torch.float32), faces, targets.cameras).mask
     mesh = TriangleMesh(vertices.numpy(), faces, name="fit")
-    with atomic_path(out / "fit.obj") as tmp:
-        trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(tmp, file_type="obj")
+    _write_obj(out / "fit.obj", mesh)
     n, fitted = len(targets.cameras), len(targets.cameras) - config.held_out
     ious = [_iou(maps.mask[i, 0], targets.mask[i, 0]) for i in range(n)]
     truth = _source_mesh(targets.record)
@@ -237,7 +315,8 @@ def _finish(config: FitConfig, out: Path, targets: Targets, param: LargeSteps, u
                "mask_iou_fitted": float(np.mean(ious[:fitted])),
                "mask_iou_held_out": float(np.mean(ious[fitted:])) if config.held_out else None,
                "chamfer_start": _chamfer(start, truth) if truth is not None else None,
-               "chamfer_end": _chamfer(mesh, truth) if truth is not None else None}
+               "chamfer_end": _chamfer(mesh, truth) if truth is not None else None,
+               "start": config.start, **{k: v for k, v in latent_phase.items() if k != "zs_history"}}
     _plot(history, out / "curves.png")
     rows = [[_overlay(maps.mask[i, 0], targets.mask[i, 0]), _depth_tile(targets.depth[i, 0]),
              _depth_tile(maps.depth[i, 0])] for i in range(n)]
@@ -256,6 +335,13 @@ def _finish(config: FitConfig, out: Path, targets: Targets, param: LargeSteps, u
                + ".\n\n![curves](curves.png)\n\n![target and fit per view](sheet.png)\n\n![progress](progress.gif)\n")
     log(f"fit-shape: wrote {out / 'fit.obj'}, {out / 'report.md'}")
     return summary
+
+
+def _write_obj(path: Path, mesh: TriangleMesh) -> None:
+    import trimesh
+
+    with atomic_path(path) as tmp:
+        trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(tmp, file_type="obj")
 
 
 def _depth_tile(depth: torch.Tensor) -> np.ndarray:

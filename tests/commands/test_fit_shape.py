@@ -77,3 +77,22 @@ def test_the_loss_terms_are_named_and_zero_at_the_target():
     # depth where the target has no object costs nothing in the depth term (the mask term sees it)
     spill = torch.ones(2, 1, 8, 8)
     assert float(fit_losses(spill, 2.0 * spill, mask, depth, 0.0, 1.0)["total"]) == 0.0
+
+
+def test_the_shape_prior_starts_the_fit_and_its_latent_is_fitted_first(chair_views, tiny_run, tmp_path):
+    from ngp_mi.models.shape import ShapeModel
+
+    prior = ShapeModel.from_run(tiny_run[0])
+    messages = []
+    config = FitConfig(str(chair_views), start="zs", zs_candidates=4, zs_steps=6, steps=10, extract_resolution=32)
+    summary = fit_shape(config, tmp_path, prior, log=messages.append)
+    assert summary["start"] == "zs" and 0 <= summary["zs_seed"] < 4
+    assert any("start z_s of seed" in m for m in messages) and any("z_s fitted" in m for m in messages)
+    latent = json.loads((tmp_path / "state" / "latent.json").read_text())
+    assert len(latent["zs_history"]) + latent["zs_halvings"] == 6
+    assert all(np.isfinite(h["total"]) for h in latent["zs_history"])
+    assert summary["loss_end"] < summary["loss_start"] and np.isfinite(summary["chamfer_end"])
+    again = fit_shape(config, tmp_path, prior, log=messages.append)  # done: phase (a) is not repeated
+    assert again["zs_seed"] == summary["zs_seed"] and sum("start z_s of seed" in m for m in messages) == 1
+    with pytest.raises(ValueError, match="needs a shape prior"):
+        fit_shape(config, tmp_path / "none")
