@@ -141,6 +141,15 @@ def _iou(coverage: torch.Tensor, mask: torch.Tensor) -> float:
     return float((a & b).sum() / union) if union else 1.0
 
 
+def _step_losses(vertices: torch.Tensor, faces: np.ndarray, targets: Targets, fitted: slice, config: FitConfig,
+                 step: int) -> tuple[Any, dict[str, torch.Tensor]]:
+    """One step's projection of the fitted views (silhouette samples seeded by the step) and its loss terms."""
+    maps = project_depth(vertices, faces, targets.cameras[fitted], silhouette_grad=config.silhouette, spp=config.spp,
+                         boundary_spp=config.boundary_spp, seed=step)
+    return maps, fit_losses(maps.mask, maps.depth, targets.mask[fitted], targets.depth[fitted], config.mask_weight,
+                            config.depth_weight)
+
+
 def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitConfig,
                log: Callable[[str], None]) -> tuple[TriangleMesh, dict[str, Any]]:
     """Phase (a): the best of ``zs_candidates`` latents by mask loss, then z_s fitted through G_shape.
@@ -179,11 +188,7 @@ def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitCon
             halvings += 1
             log(f"fit-shape: z_s step {step} gave an empty shape; undone, step size halved")
             continue
-        vertices, faces = surface
-        maps = project_depth(vertices, faces, cams, silhouette_grad=config.silhouette, spp=config.spp,
-                             boundary_spp=config.boundary_spp, seed=step)
-        terms = fit_losses(maps.mask, maps.depth, targets.mask[fitted], targets.depth[fitted], config.mask_weight,
-                           config.depth_weight)
+        terms = _step_losses(*surface, targets, fitted, config, step)[1]
         optimizer.zero_grad(set_to_none=True)
         terms["total"].backward()
         previous = z.detach().clone()
@@ -250,14 +255,9 @@ def fit_shape(config: FitConfig, out: str | Path, shape_model: Any = None,
         optimizer.load_state_dict(torch.load(state_dir / "optimizer.pt", weights_only=True))
         step, history = saved["step"], saved["history"]
         log(f"fit-shape: resumed at step {step} from {state_dir}")
-    cams = targets.cameras[fitted]
     began, first = time.perf_counter(), step
     while step < config.steps:
-        vertices = param.vertices(u)
-        maps = project_depth(vertices, faces, cams, silhouette_grad=config.silhouette, spp=config.spp,
-                             boundary_spp=config.boundary_spp, seed=step)
-        terms = fit_losses(maps.mask, maps.depth, targets.mask[fitted], targets.depth[fitted], config.mask_weight,
-                           config.depth_weight)
+        maps, terms = _step_losses(param.vertices(u), faces, targets, fitted, config, step)
         optimizer.zero_grad(set_to_none=True)
         terms["total"].backward()
         if not torch.isfinite(u.grad).all():
