@@ -1,8 +1,8 @@
 """Checkpoints: atomic, loaded without executing code, strict about modules."""
 
 import json
-import os
 
+import numpy as np
 import pytest
 import torch
 
@@ -49,11 +49,11 @@ def test_a_model_loads_itself_from_a_run_and_from_checkpoints_that_predate_store
 
 
 
-def _damage(file, how):
+def _damage(file, how, seed=0):
     if how == "truncated":
         file.write_bytes(file.read_bytes()[: file.stat().st_size // 2])
     else:
-        file.write_bytes(os.urandom(4096))
+        file.write_bytes(np.random.default_rng(seed).integers(0, 256, 4096, dtype=np.uint8).tobytes())
 
 
 @pytest.mark.parametrize("file, how", [("weights.safetensors", "truncated"), ("weights.safetensors", "random"),
@@ -80,3 +80,17 @@ def test_a_damaged_checkpoint_is_named_and_a_run_falls_back_to_the_newest_readab
     _damage(tmp_path / "ckpt-00000004" / file, how)
     with pytest.raises(DamagedCheckpoint, match=r"no checkpoint reads: .*ckpt-00000008.*ckpt-00000004"):
         newest_readable(tmp_path)
+
+
+def test_any_bytes_in_a_checkpoint_file_read_as_damaged(tmp_path):
+    """Random contents reach the readers' errors of every kind (the weights-only unpickler's
+    IndexError among them): each must come back as DamagedCheckpoint naming the file."""
+    save_checkpoint(tmp_path, 1, {"net": torch.nn.Linear(3, 2)}, {})
+    folder = tmp_path / "ckpt-00000001"
+    for seed in range(60):
+        for file in ("state.pt", "weights.safetensors"):
+            original = (folder / file).read_bytes()
+            _damage(folder / file, "random", seed)
+            with pytest.raises(DamagedCheckpoint, match=file):
+                load_checkpoint(folder, {"net": torch.nn.Linear(3, 2)})
+            (folder / file).write_bytes(original)
