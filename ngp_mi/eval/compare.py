@@ -147,13 +147,43 @@ def run_compare(config: CompareConfig, out: str | Path, log=print) -> dict[str, 
                     images_by_method.setdefault(method, []).append(pair)
                 rows.extend(rows_here)
                 sheets.append(sheet)
-    summary = summarise(rows)
+    summary = add_equal_flip_times(summarise(rows))
     if inception is not None:
         add_distribution_distances(summary, images_by_method, inception, log)
     write_json(out / "results.json", {"config": dataclasses.asdict(config), "rows": rows, "summary": summary})
     plot_speed_accuracy(summary, out / "speed_accuracy.png")
     write_compare_report(config, summary, sheets, out)
     log(f"compare: wrote {out / 'report.html'}")
+    return summary
+
+
+def add_equal_flip_times(summary: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Beside every method that is not path tracing, the time path tracing needs for the same FLIP
+    (the speed users trade against accuracy): ``path_ms_at_equal_flip``, interpolated log-log between
+    the two rungs of the spp ladder whose FLIP brackets the method's, and ``speedup`` = that time /
+    the method's. Outside the ladder it says so (``equal_flip_note``): a FLIP worse than the lowest
+    rung's is reached by path tracing in at most that rung's time; one better than the highest rung's
+    needs more than the ladder measured."""
+    ladder = sorted(((s["median_ms"], s["flip"]) for s in summary if s["kind"] == "path" and math.isfinite(s["flip"])),
+                    key=lambda point: point[1], reverse=True)  # FLIP falls as spp grows
+    if not ladder:
+        return summary
+    for entry in summary:
+        if entry["kind"] in ("path", "reference") or not math.isfinite(entry.get("flip", math.inf)):
+            continue
+        target = entry["flip"]
+        if target >= ladder[0][1]:
+            entry["path_ms_at_equal_flip"], entry["equal_flip_note"] = ladder[0][0], "at most (lowest spp of the ladder)"
+        elif target < ladder[-1][1]:
+            entry["path_ms_at_equal_flip"], entry["equal_flip_note"] = ladder[-1][0], "more than (highest spp)"
+        else:
+            for (ms_a, flip_a), (ms_b, flip_b) in zip(ladder, ladder[1:]):
+                if flip_b <= target <= flip_a:
+                    w = 0.0 if flip_a == flip_b else math.log(flip_a / target) / math.log(flip_a / flip_b)
+                    entry["path_ms_at_equal_flip"] = math.exp((1 - w) * math.log(ms_a) + w * math.log(ms_b))
+                    entry["equal_flip_note"] = "interpolated"
+                    break
+        entry["speedup"] = entry["path_ms_at_equal_flip"] / entry["median_ms"] if entry["median_ms"] > 0 else math.inf
     return summary
 
 

@@ -49,10 +49,20 @@ def write_compare_report(config: Any, summary: list[dict[str, Any]], sheets: lis
                          metrics: Sequence[str] = COMPARE_METRICS) -> None:
     """``report.html`` of ``ngp-mi compare``: conventions, the results table, the plot and the sheets."""
     b = backend.load()
-    keys = ["median_ms"] + [f"{m}{suffix}" for suffix in ("", "_masked") for m in metrics]
+    keys = ["median_ms", "path_ms_at_equal_flip", "speedup"] + [f"{m}{suffix}" for suffix in ("", "_masked")
+                                                              for m in metrics]
     keys += [k for k in ("fid", "kid") if any(k in s for s in summary)]
-    head = ["method"] + [k.replace("median_ms", "median ms") for k in keys]
-    rows = "\n".join(f"<tr><td>{html.escape(s['method'])}</td>" + "".join(f"<td>{fmt(s.get(k, ''))}</td>" for k in keys)
+    names = {"median_ms": "median ms", "path_ms_at_equal_flip": "path tracing ms at equal FLIP",
+             "speedup": "× faster than path tracing"}
+    head = ["method"] + [names.get(k, k) for k in keys]
+    def cell(entry: dict[str, Any], key: str) -> str:
+        text = fmt(entry.get(key, ""))
+        note = entry.get("equal_flip_note", "interpolated")
+        if key == "path_ms_at_equal_flip" and text and note != "interpolated":
+            text = ("≤ " if note.startswith("at most") else "> ") + text
+        return text
+
+    rows = "\n".join(f"<tr><td>{html.escape(s['method'])}</td>" + "".join(f"<td>{cell(s, k)}</td>" for k in keys)
                      + "</tr>" for s in summary)
     ref = next(s for s in summary if s["kind"] == "reference")
     if "fid" in keys:
@@ -76,7 +86,9 @@ radiance of a Lambertian surface of albedo I_d under the same lights, and R_BP u
 (k_d {config.constants.k_d}, k_s {config.constants.k_s}, α {config.constants.alpha:g}).</li>
 <li>No exposure or tone mapping; sRGB metrics apply the sRGB transfer function to values clipped to [0, 1].</li>
 <li>PSNR uses peak 1; SSIM is scikit-image's (Gaussian σ 1.5); FLIP is NVIDIA's (LDR, 67 pixels per degree).
-"_masked" averages over the object only (mask of the G-buffer); times are medians over images, after a warm-up.</li>
+"_masked" averages over the object only (mask of the G-buffer); times are medians over images, after a warm-up.
+"Path tracing ms at equal FLIP": the spp ladder's time interpolated (log-log) at the method's FLIP; "≤" when the
+lowest rung is already as good, "&gt;" when the highest rung is still worse.</li>
 <li>Deferred times include rendering the G-buffer maps and shading them. "direct + shadows" and
 "direct, no shadows" are physically based images without interreflection (and without shadows): the
 differences to the reference measure what the deferred renderers cannot model.</li>

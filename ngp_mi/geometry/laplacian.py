@@ -20,10 +20,12 @@ def uniform_laplacian(faces: np.ndarray | torch.Tensor, num_vertices: int,
     f = torch.as_tensor(np.asarray(faces), dtype=torch.long, device=device)
     edges = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     edges = torch.cat([edges, edges.flip(1)]).unique(dim=0).T
-    adjacency = torch.sparse_coo_tensor(edges, torch.ones(edges.shape[1], device=device), (num_vertices,) * 2, check_invariants=True)
+    size = (num_vertices, num_vertices)
+    adjacency = torch.sparse_coo_tensor(edges, torch.ones(edges.shape[1], device=device), size, check_invariants=True)
     index = torch.arange(num_vertices, device=device)
     degree = torch.zeros(num_vertices, device=device).index_add_(0, edges[0], torch.ones(edges.shape[1], device=device))
-    return (torch.sparse_coo_tensor(torch.stack([index, index]), degree, (num_vertices,) * 2, check_invariants=True) - adjacency).coalesce()
+    diagonal = torch.sparse_coo_tensor(torch.stack([index, index]), degree, size, check_invariants=True)
+    return (diagonal - adjacency).coalesce()
 
 
 class LargeSteps:

@@ -61,6 +61,8 @@ def test_compare_with_trained_map_networks_and_fid(tmp_path, tiny_maps_run):
     assert all(math.isfinite(s["fid"]) and math.isfinite(s["kid"]) for s in summary if s["kind"] != "reference")
     report = (tmp_path / "cmp" / "report.html").read_text()
     assert "NGP-plus" in report and "<th>fid</th>" in report
+    assert all("path_ms_at_equal_flip" in s and s["speedup"] > 0 for s in neural.values())
+    assert "path tracing ms at equal FLIP" in report
 
 
 class _FakeInception(torch.nn.Module):
@@ -81,3 +83,19 @@ def test_fid_without_weights_names_the_file(tmp_path):
         InceptionFeatures(tmp_path / "bad.pt")
     with pytest.raises(ValueError, match="light setup must be one of"):
         run_compare(CompareConfig(light_setups=("rig", "sun")), tmp_path / "x", log=lambda *_: None)
+
+
+def test_the_path_tracers_time_at_equal_flip_is_interpolated_on_the_ladder():
+    from ngp_mi.eval.compare import add_equal_flip_times
+
+    ladder = [{"method": f"path tracing {spp} spp", "kind": "path", "median_ms": ms, "flip": f}
+              for spp, ms, f in ((1, 2.0, 0.4), (4, 8.0, 0.2), (16, 32.0, 0.1))]
+    others = [{"method": m, "kind": "neural", "median_ms": 20.0, "flip": f}
+              for m, f in (("between", 0.4 / 2 ** 0.5), ("worse", 0.5), ("better", 0.05), ("on a rung", 0.1))]
+    out = {s["method"]: s for s in add_equal_flip_times(ladder + others)}
+    assert out["between"]["path_ms_at_equal_flip"] == pytest.approx(4.0)  # time ∝ FLIP^-2 between these rungs
+    assert out["between"]["speedup"] == pytest.approx(0.2)
+    assert (out["worse"]["path_ms_at_equal_flip"], out["worse"]["equal_flip_note"]) == (2.0, "at most (lowest spp of the ladder)")
+    assert out["better"]["equal_flip_note"] == "more than (highest spp)"
+    assert out["on a rung"]["path_ms_at_equal_flip"] == pytest.approx(32.0)
+    assert "path_ms_at_equal_flip" not in out["path tracing 4 spp"]
