@@ -15,12 +15,13 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Sequence
+from typing import BinaryIO, Sequence
 
 import numpy as np
 import torch
 
 from ngp_mi.camera import PAPER_FOCAL_MM, PAPER_RADIUS, Camera
+from ngp_mi.data.datasets import read_image
 from ngp_mi.geometry.mesh import TriangleMesh
 from ngp_mi.lights import Light, overhead_rig
 from ngp_mi.models.maps import DEPTH_CENTER, MapsModel, depth_to_net
@@ -31,6 +32,7 @@ from ngp_mi.nets.networks import check_image_size
 from ngp_mi.render.depth import project_depth
 from ngp_mi.render.from_depth import normals_from_depth
 from ngp_mi.render.shading import Constants, shade
+from ngp_mi.viz import chw_to_uint8, depth_to_uint8
 
 VARIANTS = ("ngp", "ngp_bp", "ngp_plus", "no_sp", "no_gn", "no_gda")
 NEEDS_SPECULAR = ("ngp", "ngp_plus", "no_gn", "no_gda")  # the variants that blend G_sp^real
@@ -50,6 +52,36 @@ def slerp(a: torch.Tensor, b: torch.Tensor, t: float) -> torch.Tensor:
     if float(omega) < 1e-6:
         return (1 - t) * a + t * b
     return (torch.sin((1 - t) * omega) * a + torch.sin(t * omega) * b) / torch.sin(omega)
+
+
+def as_latent(value: torch.Tensor | int, dim: int, name: str = "a latent") -> torch.Tensor:
+    """A latent (``dim``,) given as a seed (:func:`latent`) or as a vector."""
+    z = latent(value, dim) if isinstance(value, int) else torch.as_tensor(value, dtype=torch.float32).reshape(-1)
+    if z.shape != (dim,):
+        raise ValueError(f"{name} must have {dim} entries, got {tuple(z.shape)}")
+    return z
+
+
+def exemplar_image(source: str | Path | BinaryIO, resolution: int) -> torch.Tensor:
+    """An exemplar albedo image (a file, or an open one such as an upload) as a linear (1, 3, R, R) tensor."""
+    albedo = torch.from_numpy(np.ascontiguousarray(read_image(source, resolution, linear=True)))
+    return torch.nn.functional.interpolate(albedo.permute(2, 0, 1)[None], size=(resolution, resolution),
+                                           mode="bilinear", align_corners=False)
+
+
+def display_maps(result: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
+    """uint8 (H, W, 3) pictures of a render's maps (:meth:`NGPScene.render` with ``maps``): coarse
+    depth, normals, albedo, the shaded image before the blend (``shaded``, when present), the specular
+    map (black without one) and the image; colours in sRGB, normals and depth as they are."""
+    mask = result["mask"]
+    shown = {"depth": depth_to_uint8(result["depth"][0, 0], mask[0, 0]),
+             "normal": chw_to_uint8((result["normal"] + 1) / 2 * mask, srgb=False),
+             "albedo": chw_to_uint8(result["albedo"] * mask),
+             "specular": chw_to_uint8(result.get("specular", torch.zeros_like(result["image"]))),
+             "image": chw_to_uint8(result["image"])}
+    if "shaded" in result:
+        shown["shaded"] = chw_to_uint8(result["shaded"])
+    return shown
 
 
 def views_of(camera: Camera, bounds: np.ndarray) -> dict[str, torch.Tensor]:
@@ -258,7 +290,6 @@ class NGPScene:
         self._versions = {"shape": 0, "camera": 0, "appearance": 0, "lights": 0, "variant": 0, "constants": 0}
         self._cache: dict[str, tuple[tuple, object]] = {}
         self._shape: tuple[str, object] | None = None
-        self._mesh: TriangleMesh | None = None
         self.camera = Camera.orbit(10.0, -30.0, resolution)
         self._appearance: tuple[str, torch.Tensor] = ("z_da", latent(0, ngp.maps.config.latent_dim)[None])
         self.lights: list[Light] = overhead_rig()
@@ -288,20 +319,17 @@ class NGPScene:
         else:
             if self.ngp.shape_model is None:
                 raise ValueError("sampling shapes needs a `train shape` run (NGP(..., shape_run=...))")
-            dim = self.ngp.shape_model.config.z_dim
-            z = latent(seed, dim) if seed is not None else torch.as_tensor(z_s, dtype=torch.float32).reshape(-1)
-            if z.shape != (dim,):
-                raise ValueError(f"set_shape: z_s must have {dim} entries, got {tuple(z.shape)}")
-            shape = ("z_s", z)
+            shape = ("z_s", as_latent(seed if seed is not None else z_s, self.ngp.shape_model.config.z_dim, "z_s"))
         old, self._shape = self._shape, shape
         self._changed("shape", old, shape)
         return self
 
     def interpolate_shapes(self, a: torch.Tensor | int, b: torch.Tensor | int, t: float) -> "NGPScene":
         """z_s = slerp(a, b, t) between two latents (or the latents of two seeds)."""
-        dim = self.ngp.shape_model.config.z_dim if self.ngp.shape_model is not None else 0
-        za, zb = (latent(x, dim) if isinstance(x, int) else torch.as_tensor(x).reshape(-1) for x in (a, b))
-        return self.set_shape(slerp(za, zb, t))
+        if self.ngp.shape_model is None:
+            raise ValueError("sampling shapes needs a `train shape` run (NGP(..., shape_run=...))")
+        dim = self.ngp.shape_model.config.z_dim
+        return self.set_shape(slerp(as_latent(a, dim, "z_s"), as_latent(b, dim, "z_s"), t))
 
     def set_camera(self, camera: Camera | None = None, *, theta: float = 10.0, phi: float = -30.0,
                    distance: float = PAPER_RADIUS, focal_mm: float = PAPER_FOCAL_MM) -> "NGPScene":
@@ -321,7 +349,6 @@ class NGPScene:
         directly (the paper's direct editing; it replaces G_da until another appearance is set)."""
         if sum(x is not None for x in (z_da, seed, exemplar, albedo)) != 1:
             raise ValueError("set_appearance: give exactly one of z_da, seed, exemplar or albedo")
-        dim = self.ngp.maps.config.latent_dim
         if albedo is not None:
             albedo = torch.as_tensor(albedo, dtype=torch.float32)
             if albedo.shape != (1, 3, self.camera.height, self.camera.width):
@@ -331,9 +358,7 @@ class NGPScene:
         elif exemplar is not None:
             appearance = ("z_da", self.ngp.appearance(exemplar=exemplar))
         else:
-            z = latent(seed, dim) if seed is not None else torch.as_tensor(z_da, dtype=torch.float32).reshape(-1)
-            if z.shape != (dim,):
-                raise ValueError(f"set_appearance: z_da must have {dim} entries, got {tuple(z.shape)}")
+            z = as_latent(seed if seed is not None else z_da, self.ngp.maps.config.latent_dim, "z_da")
             appearance = ("z_da", z[None])
         old, self._appearance = self._appearance, appearance
         self._changed("appearance", old, appearance)
@@ -342,8 +367,7 @@ class NGPScene:
     def interpolate_appearance(self, a: torch.Tensor | int, b: torch.Tensor | int, t: float) -> "NGPScene":
         """z_da = slerp(a, b, t) between two latents (or the latents of two seeds)."""
         dim = self.ngp.maps.config.latent_dim
-        za, zb = (latent(x, dim) if isinstance(x, int) else torch.as_tensor(x).reshape(-1) for x in (a, b))
-        return self.set_appearance(slerp(za, zb, t))
+        return self.set_appearance(slerp(as_latent(a, dim, "z_da"), as_latent(b, dim, "z_da"), t))
 
     def set_lights(self, lights: Sequence[Light], added: Sequence[Light] = ()) -> "NGPScene":
         """The lights (directional or point, any number), and the lights NGP-plus adds by R_BP."""
@@ -403,13 +427,12 @@ class NGPScene:
         k_shade = k_albedo + (v["lights"], v["variant"], v["constants"])
         shaded = self._stage("shade", k_shade, lambda: shade_maps(
             normal, albedo, mask, depth, self.camera, self.lights, variant, self.constants, self.added_lights))
-        out = {"image": shaded}
         specular = None
         if variant in NEEDS_SPECULAR:
             specular = self._stage("specular", k_albedo, lambda: realistic_specular(
                 self.ngp.maps, self.ngp.specular, normal, albedo, mask, self.camera))
-        out["image"] = self._stage("blend", k_shade + (specular is not None,),
-                                   lambda: shaded + specular if specular is not None else shaded)
+        out = {"image": self._stage("blend", k_shade + (specular is not None,),
+                                    lambda: shaded + specular if specular is not None else shaded)}
         if maps:
             out.update(depth=depth, mask=mask, normal=normal, albedo=albedo, shaded=shaded)
             if specular is not None:

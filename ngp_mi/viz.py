@@ -30,6 +30,25 @@ def to_uint8(image: np.ndarray, srgb: bool = True) -> np.ndarray:
     return np.round(image * 255.0).astype(np.uint8)
 
 
+def chw_to_uint8(image: Any, srgb: bool = True) -> np.ndarray:
+    """A (1, C, H, W) or (C, H, W) array (a CPU torch tensor too) → uint8 (H, W, C), through sRGB
+    unless ``srgb`` is False."""
+    array = np.asarray(image, dtype=np.float32)
+    return to_uint8(np.moveaxis(array[0] if array.ndim == 4 else array, 0, -1), srgb)
+
+
+def depth_to_uint8(depth: Any, mask: Any) -> np.ndarray:
+    """A depth map (H, W) as grey (H, W, 3) uint8: the object's nearest point white, its farthest 0.2,
+    the background black (the mask > 0 says which is which)."""
+    d = np.asarray(depth, dtype=np.float32)
+    on = np.asarray(mask) > 0
+    shown = np.zeros_like(d)
+    if on.any():
+        near = d[on].min()
+        shown[on] = 1 - 0.8 * (d[on] - near) / max(float(d[on].max() - near), 1e-6)
+    return to_uint8(np.repeat(shown[..., None], 3, -1), srgb=False)
+
+
 def save_png(path: str | Path, image: np.ndarray) -> Path:
     """Write a uint8 (H, W[, C]) image as PNG, via a temporary file and a rename."""
     path = Path(path)

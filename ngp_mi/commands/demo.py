@@ -25,14 +25,15 @@ import torch
 
 from ngp_mi.atomic import write_json, write_text
 from ngp_mi.camera import Camera, ViewDistribution
+from ngp_mi.data.sources import resolve_source
 from ngp_mi.geometry.families import FAMILIES, generate
 from ngp_mi.lights import DirectionalLight, Light, PointLight, lights_to_json, overhead_rig
 from ngp_mi.models.pretrained import available
-from ngp_mi.pipeline import NGP, EmptyShape, NGPScene
+from ngp_mi.pipeline import NGP, EmptyShape, NGPScene, display_maps
 from ngp_mi.render.gbuffer import GBufferRenderer
 from ngp_mi.render.preview import object_shapes, preview_sheet
-from ngp_mi.render.scene import build_scene, mesh_parts_to_mitsuba, render, set_sensor_camera
-from ngp_mi.viz import contact_sheet, labelled_grid, save_animation, save_png, to_uint8
+from ngp_mi.render.scene import build_scene, render, set_sensor_camera
+from ngp_mi.viz import chw_to_uint8, contact_sheet, labelled_grid, save_animation, save_png, to_uint8
 
 FAMILY_VIEW = (15.0, 35.0)
 
@@ -45,15 +46,6 @@ def family_sheet(family: str, out: str | Path, count: int = 16, resolution: int 
 
 
 Figure = tuple[str, str]  # (file relative to the page, caption)
-
-
-def _rgb(image: torch.Tensor) -> np.ndarray:
-    return to_uint8(image[0].permute(1, 2, 0).clamp(0, 1).numpy())
-
-
-def _map(image: torch.Tensor, mask: torch.Tensor, signed: bool = False) -> np.ndarray:
-    x = (image + 1) / 2 if signed else image
-    return to_uint8((x * mask)[0].permute(1, 2, 0).clamp(0, 1).numpy(), srgb=False)
 
 
 def light_orbit_lights(step: int, steps: int) -> list[Light]:
@@ -73,13 +65,10 @@ def light_orbit_lights(step: int, steps: int) -> list[Light]:
 
 def _reference_albedo(family: str, resolution: int) -> torch.Tensor:
     """An albedo map to transfer: Mitsuba's G-buffer albedo of another object of the family (1, 3, H, W)."""
-    obj = generate(family if family in FAMILIES else "chair", 7)
-    mesh = obj.mesh()
+    content = resolve_source(family if family in FAMILIES else "chair", 1, seed=7)[0].load()
     camera = Camera.orbit(10.0, -30.0, resolution)
-    renderer = GBufferRenderer(mesh_parts_to_mitsuba(mesh, {k: m.to_mitsuba() for k, m in obj.materials.items()}),
-                               mesh.bounds, camera, ("albedo", "mask"))
-    maps = renderer.render(camera)
-    return torch.from_numpy(np.ascontiguousarray(maps["albedo"])).permute(2, 0, 1)[None].float()
+    albedo = GBufferRenderer(content.shapes, content.bounds, camera, ("albedo", "mask")).render(camera)["albedo"]
+    return torch.from_numpy(np.ascontiguousarray(albedo)).permute(2, 0, 1)[None].float()
 
 
 def ngp_sections(ngp: NGP, name: str, out_dir: Path, resolution: int = 128, frames: int = 12,
@@ -114,7 +103,7 @@ def ngp_sections(ngp: NGP, name: str, out_dir: Path, resolution: int = 128, fram
     phis = np.linspace(-90.0, 90.0, frames)
     orbit = []
     for phi in phis:
-        orbit.append(_rgb(scene.set_camera(theta=10.0, phi=float(phi)).render()["image"]))
+        orbit.append(chw_to_uint8(scene.set_camera(theta=10.0, phi=float(phi)).render()["image"]))
         step("camera orbit")
     save_animation(folder / "camera_orbit.gif", orbit + orbit[-2:0:-1], fps=8)
     save_png(folder / "camera_orbit.png", labelled_grid([orbit[::2]], [shape_text], [f"φ {p:.0f}°" for p in phis[::2]]))
@@ -127,7 +116,7 @@ def ngp_sections(ngp: NGP, name: str, out_dir: Path, resolution: int = 128, fram
     light_frames, labels = [], []
     for k in range(frames):
         lights = light_orbit_lights(k, frames)
-        light_frames.append(_rgb(scene.set_lights(lights).render()["image"]))
+        light_frames.append(chw_to_uint8(scene.set_lights(lights).render()["image"]))
         labels.append(f"{len(lights)} light{'s' if len(lights) > 1 else ''}, {360 * k / frames:.0f}°")
         step("light orbit")
     scene.set_lights(overhead_rig())
@@ -140,7 +129,7 @@ def ngp_sections(ngp: NGP, name: str, out_dir: Path, resolution: int = 128, fram
     # appearance and shape sweeps
     looks = []
     for seed in range(6):
-        looks.append(_rgb(scene.set_appearance(seed=seed).render()["image"]))
+        looks.append(chw_to_uint8(scene.set_appearance(seed=seed).render()["image"]))
         step("appearance")
     save_png(folder / "appearance.png", labelled_grid([looks], [shape_text], [f"z_da seed {s}" for s in range(6)]))
     figures = [(rel("appearance.png"), "the appearance latent z_da changes; shape, camera and lights fixed")]
@@ -149,7 +138,7 @@ def ngp_sections(ngp: NGP, name: str, out_dir: Path, resolution: int = 128, fram
         shapes = []
         for seed in range(6):
             try:
-                shapes.append(_rgb(scene.set_shape(seed=seed).render()["image"]))
+                shapes.append(chw_to_uint8(scene.set_shape(seed=seed).render()["image"]))
             except EmptyShape:
                 shapes.append(np.zeros((resolution, resolution, 3), np.uint8))
             step("shape")
@@ -163,7 +152,7 @@ def ngp_sections(ngp: NGP, name: str, out_dir: Path, resolution: int = 128, fram
     transferred = scene.set_appearance(exemplar=exemplar).render(maps=True)
     step("exemplar")
     save_png(folder / "exemplar.png", labelled_grid(
-        [[_rgb(exemplar), _rgb(transferred["albedo"] * transferred["mask"]), _rgb(transferred["image"])]],
+        [[chw_to_uint8(exemplar), display_maps(transferred)["albedo"], chw_to_uint8(transferred["image"])]],
         [""], ["exemplar albedo (Mitsuba G-buffer)", "G_da with μ(E_da(exemplar))", "NGP image"]))
     sections.append((f"{name}: exemplar transfer", [(rel("exemplar.png"),
                                                      "the appearance of a reference albedo map, through E_da")]))
@@ -175,7 +164,7 @@ def ngp_sections(ngp: NGP, name: str, out_dir: Path, resolution: int = 128, fram
     variants = [v for v in ("ngp", "ngp_bp", "ngp_plus") if ngp.specular is not None or v == "ngp_bp"]
     tiles = []
     for variant in variants:
-        tiles.append(_rgb(scene.set_variant(variant).render()["image"]))
+        tiles.append(chw_to_uint8(scene.set_variant(variant).render()["image"]))
         step("variant")
     save_png(folder / "variants.png", labelled_grid([tiles], [""], [
         {"ngp": "NGP: R_diff ⊕ G_sp^real", "ngp_bp": "NGP-BP: R_BP", "ngp_plus": "NGP-plus: + R_BP of an orange light"}[v]
@@ -184,12 +173,8 @@ def ngp_sections(ngp: NGP, name: str, out_dir: Path, resolution: int = 128, fram
     scene.set_lights(overhead_rig())
     maps = scene.render(maps=True)
     columns = ["coarse depth (Π_v)", "normals G_n", "albedo G_da", "R_diff / π", "G_sp^real", "image"]
-    depth = maps["depth"]
-    shown = torch.where(maps["mask"] > 0, 1 - 0.8 * (depth - depth[maps["mask"] > 0].min()).clamp(min=0)
-                        / max(float(np.ptp(depth[maps["mask"] > 0].numpy())), 1e-6), torch.zeros_like(depth))
-    row = [_map(shown.expand(-1, 3, -1, -1), maps["mask"]), _map(maps["normal"], maps["mask"], signed=True),
-           _rgb(maps["albedo"] * maps["mask"]), _rgb(maps["shaded"]),
-           _rgb(maps.get("specular", torch.zeros_like(maps["image"]))), _rgb(maps["image"])]
+    shown = display_maps(maps)
+    row = [shown[name] for name in ("depth", "normal", "albedo", "shaded", "specular", "image")]
     save_png(folder / "maps.png", labelled_grid([row], [""], columns))
     step("maps")
     sections.append((f"{name}: variants and intermediate maps", [

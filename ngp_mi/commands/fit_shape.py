@@ -41,9 +41,9 @@ from ngp_mi.geometry.families import generate
 from ngp_mi.geometry.laplacian import LargeSteps
 from ngp_mi.geometry.loaders import load_mesh
 from ngp_mi.geometry.mesh import TriangleMesh
-from ngp_mi.geometry.occupancy import surface_samples
+from ngp_mi.geometry.occupancy import surface_samples, voxel_iou
 from ngp_mi.render.depth import project_depth
-from ngp_mi.viz import labelled_grid, save_animation, save_png, to_uint8
+from ngp_mi.viz import depth_to_uint8, labelled_grid, save_animation, save_png
 
 
 @dataclasses.dataclass(frozen=True)
@@ -136,9 +136,8 @@ def _chamfer(a: TriangleMesh, b: TriangleMesh, count: int = 4096) -> float:
 
 
 def _iou(coverage: torch.Tensor, mask: torch.Tensor) -> float:
-    a, b = coverage > 0.5, mask > 0.5
-    union = (a | b).sum()
-    return float((a & b).sum() / union) if union else 1.0
+    """Mask IoU of a (soft) coverage against a target mask, both thresholded at 1/2."""
+    return voxel_iou((coverage > 0.5).numpy(), (mask > 0.5).numpy())
 
 
 def _step_losses(vertices: torch.Tensor, faces: np.ndarray, targets: Targets, fitted: slice, config: FitConfig,
@@ -318,8 +317,8 @@ def _finish(config: FitConfig, out: Path, targets: Targets, param: LargeSteps, u
                "chamfer_end": _chamfer(mesh, truth) if truth is not None else None,
                "start": config.start, **{k: v for k, v in latent_phase.items() if k != "zs_history"}}
     _plot(history, out / "curves.png")
-    rows = [[_overlay(maps.mask[i, 0], targets.mask[i, 0]), _depth_tile(targets.depth[i, 0]),
-             _depth_tile(maps.depth[i, 0])] for i in range(n)]
+    rows = [[_overlay(maps.mask[i, 0], targets.mask[i, 0]), depth_to_uint8(targets.depth[i, 0], targets.mask[i, 0]),
+             depth_to_uint8(maps.depth[i, 0], maps.mask[i, 0])] for i in range(n)]
     save_png(out / "sheet.png", labelled_grid(rows, [f"view {i}{' (held out)' if i >= fitted else ''}, IoU {ious[i]:.3f}"
                                                      for i in range(n)], ["mask: target / fit / both", "target depth",
                                                                           "fitted depth"]))
@@ -342,15 +341,6 @@ def _write_obj(path: Path, mesh: TriangleMesh) -> None:
 
     with atomic_path(path) as tmp:
         trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(tmp, file_type="obj")
-
-
-def _depth_tile(depth: torch.Tensor) -> np.ndarray:
-    d = depth.numpy()
-    shown = np.zeros_like(d)
-    m = d > 0
-    if m.any():
-        shown[m] = 1 - 0.8 * (d[m] - d[m].min()) / max(float(np.ptp(d[m])), 1e-6)
-    return to_uint8(np.repeat(shown[..., None], 3, -1), srgb=False)
 
 
 def _plot(history: list[dict[str, float]], path: Path) -> None:

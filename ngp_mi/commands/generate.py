@@ -21,11 +21,10 @@ import numpy as np
 import torch
 
 from ngp_mi.atomic import write_json, write_text
-from ngp_mi.data.datasets import read_image
 from ngp_mi.geometry.loaders import load_mesh
 from ngp_mi.lights import DirectionalLight, Light, lights_to_json, overhead_rig
-from ngp_mi.pipeline import NGP, EmptyShape, NGPScene
-from ngp_mi.viz import labelled_grid, save_animation, save_png, to_uint8
+from ngp_mi.pipeline import NGP, EmptyShape, NGPScene, display_maps, exemplar_image
+from ngp_mi.viz import chw_to_uint8, labelled_grid, save_animation, save_png
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,7 +84,7 @@ def generate(maps_run: str | Path | None, out: str | Path, shape_run: str | Path
     out = Path(out)
     lights = list(lights) if lights is not None else overhead_rig()
     scene = NGPScene(ngp, resolution, variant).set_lights(lights, added_lights)
-    exemplar_tensor = _exemplar(exemplar, resolution) if exemplar else None
+    exemplar_tensor = exemplar_image(exemplar, resolution) if exemplar else None
     shapes = _shapes(scene, mesh_path, seed, num, exemplar_tensor)
     (out / "images").mkdir(parents=True, exist_ok=True)
     rows, labels, records, skipped = [], [], [], {}
@@ -123,12 +122,6 @@ def generate(maps_run: str | Path | None, out: str | Path, shape_run: str | Path
     write_json(out / "generate.json", summary)
     write_text(out / "report.md", _report(settings, labels, names, swept, command))
     return summary
-
-
-def _exemplar(path: str, resolution: int) -> torch.Tensor:
-    albedo = torch.from_numpy(np.ascontiguousarray(read_image(Path(path), resolution, linear=True)))
-    return torch.nn.functional.interpolate(albedo.permute(2, 0, 1)[None], size=(resolution, resolution),
-                                           mode="bilinear", align_corners=False)
 
 
 def _shapes(scene: NGPScene, mesh_path: str | None, seed: int, num: int,
@@ -210,7 +203,7 @@ def _render_or_blank(scene: NGPScene) -> np.ndarray:
 
 
 def _image(result: dict[str, torch.Tensor]) -> np.ndarray:
-    return to_uint8(result["image"][0].permute(1, 2, 0).numpy())
+    return chw_to_uint8(result["image"])
 
 
 def _report(settings: dict[str, Any], labels: list[str], names: list[str], swept: dict[str, str],
@@ -233,15 +226,5 @@ def _report(settings: dict[str, Any], labels: list[str], names: list[str], swept
 
 def _tiles(result: dict[str, torch.Tensor]) -> list[np.ndarray]:
     """One row of the sheet: coarse depth, normals, albedo, specular, image."""
-    mask = result["mask"][0, 0].numpy() > 0
-    depth = result["depth"][0, 0].numpy()
-    shown = np.zeros_like(depth)
-    if mask.any():
-        lo, hi = depth[mask].min(), depth[mask].max()
-        shown[mask] = 1 - 0.8 * (depth[mask] - lo) / max(hi - lo, 1e-6)
-    to_rgb = lambda t: t[0].permute(1, 2, 0).clamp(0, 1).numpy()  # noqa: E731
-    specular = result.get("specular", torch.zeros_like(result["image"]))
-    return [to_uint8(np.repeat(shown[..., None], 3, -1), srgb=False),
-            to_uint8(((result["normal"] + 1) / 2 * result["mask"])[0].permute(1, 2, 0).clamp(0, 1).numpy(), srgb=False),
-            to_uint8(to_rgb(result["albedo"] * result["mask"])), to_uint8(to_rgb(specular)),
-            _image(result)]
+    shown = display_maps(result)
+    return [shown[name] for name in ("depth", "normal", "albedo", "specular", "image")]

@@ -24,16 +24,15 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-import torch
 
 from ngp_mi.atomic import write_json
 from ngp_mi.camera import Camera
 from ngp_mi.geometry.mesh import TriangleMesh
 from ngp_mi.lights import DirectionalLight, Light, PointLight, lights_to_json, overhead_rig
 from ngp_mi.nets.networks import SIZE_MULTIPLE
-from ngp_mi.pipeline import NGP, VARIANTS, NGPScene
+from ngp_mi.pipeline import NGP, VARIANTS, NGPScene, display_maps, exemplar_image
 from ngp_mi.render.shading import Constants
-from ngp_mi.viz import save_png, to_uint8
+from ngp_mi.viz import chw_to_uint8, save_png
 
 SHOWN = ("image", "depth", "normal", "albedo", "specular")
 
@@ -41,11 +40,9 @@ SHOWN = ("image", "depth", "normal", "albedo", "specular")
 def camera_from_pose(wxyz: np.ndarray, position: np.ndarray, fov_y: float, width: int, height: int) -> Camera:
     """Our camera (world → camera ``[R | t]``, OpenCV axes) from a viewer pose: ``wxyz`` rotates camera
     axes into the world (OpenCV axes too: +Z forward, +Y down), ``fov_y`` the vertical field of view."""
-    w, x, y, z = (float(v) for v in wxyz)
-    camera_to_world = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                                [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                                [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-    R = camera_to_world.T
+    import viser.transforms as tf
+
+    R = tf.SO3(np.asarray(wxyz, np.float64)).as_matrix().T
     focal = 0.5 * height / np.tan(0.5 * fov_y)
     return Camera(R=R, t=-R @ np.asarray(position, np.float64), width=width, height=height, focal_px=float(focal),
                   cx=width / 2.0, cy=height / 2.0)
@@ -53,19 +50,9 @@ def camera_from_pose(wxyz: np.ndarray, position: np.ndarray, fov_y: float, width
 
 def pose_of(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     """(wxyz, position) of a camera: the inverse of :func:`camera_from_pose`."""
-    m = camera.R.T  # camera → world
-    trace = np.trace(m)
-    if trace > 0:
-        s = 2 * np.sqrt(1 + trace)
-        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
-    else:
-        i = int(np.argmax(np.diag(m)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2 * np.sqrt(1 + m[i, i] - m[j, j] - m[k, k])
-        q = [0.0] * 4
-        q[0] = (m[k, j] - m[j, k]) / s
-        q[1 + i], q[1 + j], q[1 + k] = 0.25 * s, (m[j, i] + m[i, j]) / s, (m[k, i] + m[i, k]) / s
-    return np.array(q), camera.position
+    import viser.transforms as tf
+
+    return tf.SO3.from_matrix(camera.R.T).wxyz, camera.position
 
 
 def _even(size: float) -> int:
@@ -131,26 +118,19 @@ class ViewerState:
 
     def set_exemplar(self, name: str, content: bytes) -> str | None:
         """An uploaded albedo image: its appearance code through E_da."""
-        from PIL import Image, UnidentifiedImageError
-
+        upload = io.BytesIO(content)
+        upload.name = name
         try:
-            image = Image.open(io.BytesIO(content)).convert("RGB").resize((self.resolution, self.resolution))
-        except (UnidentifiedImageError, OSError, ValueError) as exc:
-            return f"{name}: not an image ({type(exc).__name__})"
-        srgb = np.asarray(image, np.float32) / 255.0
-        linear = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
-        self.scene.set_appearance(exemplar=torch.from_numpy(linear).permute(2, 0, 1)[None].float())
+            exemplar = exemplar_image(upload, self.resolution)
+        except ValueError as exc:
+            return f"{name}: not an image ({exc})"
+        self.scene.set_appearance(exemplar=exemplar)
         self.appearance = {"exemplar": name}
         return None
 
     # ---- lights, variant, constants, what is shown
     def set_lights(self, lights: list[Light]) -> str | None:
-        for light in lights:
-            point = isinstance(light, PointLight)
-            colour, where = (light.intensity, light.position) if point else (light.irradiance, light.direction)
-            if not np.all(np.isfinite([*where, *colour])) or min(colour) < 0:
-                return f"a light needs finite values and a non-negative colour, got {light}"
-        self.lights = list(lights)
+        self.lights = list(lights)  # each light checked its own values when it was made
         self.scene.set_lights(self.lights, self.scene.added_lights)
         return None
 
@@ -190,19 +170,7 @@ class ViewerState:
         start = time.perf_counter()
         self.scene.set_camera(camera)
         out = self.scene.render(maps=self.shown != "image")
-        if self.shown == "image":
-            image = to_uint8(out["image"][0].permute(1, 2, 0).numpy())
-        elif self.shown == "depth":
-            d, m = out["depth"][0, 0].numpy(), out["mask"][0, 0].numpy() > 0
-            shown = np.zeros_like(d)
-            if m.any():
-                shown[m] = 1 - 0.8 * (d[m] - d[m].min()) / max(float(np.ptp(d[m])), 1e-6)
-            image = to_uint8(np.repeat(shown[..., None], 3, -1), srgb=False)
-        elif self.shown == "normal":
-            image = to_uint8(((out["normal"] + 1) / 2 * out["mask"])[0].permute(1, 2, 0).numpy(), srgb=False)
-        else:
-            value = out.get(self.shown, torch.zeros_like(out["image"]))
-            image = to_uint8((value * out["mask"])[0].permute(1, 2, 0).clamp(0, 1).numpy())
+        image = chw_to_uint8(out["image"]) if self.shown == "image" else display_maps(out)[self.shown]
         return Frame(image, 1e3 * (time.perf_counter() - start), dict(self.scene.stage_runs))
 
     # ---- what is kept

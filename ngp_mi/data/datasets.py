@@ -13,7 +13,7 @@ NOC in [0, 1]) as float32 CHW tensors; scaling to [−1, 1] happens at the netwo
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, BinaryIO, Sequence
 
 import numpy as np
 import torch
@@ -65,25 +65,27 @@ class DepthDataset(ReflectanceMapDataset):
         super().__init__(root, channels=("depth", "mask"))
 
 
-def read_image(path: Path, size: int | None = None, linear: bool = False) -> np.ndarray:
-    """(H, W, 3) float32 of an image file. PNG / JPEG are sRGB (resized to ``size``² when given)
-    and returned as such unless ``linear``; EXR (an ``rgb`` layer) is linear and returned as such
-    unless ``linear=False`` (resize it with the caller's tensor ops)."""
-    path = Path(path)
-    if path.suffix.lower() == ".exr":
-        channels = read_exr(path)
+def read_image(path: str | Path | BinaryIO, size: int | None = None, linear: bool = False) -> np.ndarray:
+    """(H, W, 3) float32 of an image file (or an open binary file, e.g. an upload's bytes). PNG /
+    JPEG are sRGB (resized to ``size``² when given) and returned as such unless ``linear``; EXR (an
+    ``rgb`` layer, files only) is linear and returned as such unless ``linear=False`` (resize it
+    with the caller's tensor ops)."""
+    is_file = isinstance(path, (str, Path))
+    name = Path(path) if is_file else Path(getattr(path, "name", None) or "uploaded image")
+    if is_file and name.suffix.lower() == ".exr":
+        channels = read_exr(name)
         rgb = channels.get("rgb")
         if rgb is None:
-            raise ValueError(f"{path}: EXR image needs an 'rgb' layer, has {sorted(channels)}")
+            raise ValueError(f"{name}: EXR image needs an 'rgb' layer, has {sorted(channels)}")
         return rgb if linear else linear_to_srgb(rgb)
     try:
-        with Image.open(path) as im:
+        with Image.open(name if is_file else path) as im:
             im = im.convert("RGB")
             if size and im.size != (size, size):
                 im = im.resize((size, size), Image.BILINEAR)
             image = np.asarray(im, dtype=np.float32) / 255.0
     except OSError as exc:
-        raise ValueError(f"{path}: unreadable image ({exc})") from None
+        raise ValueError(f"{name}: unreadable image ({exc})") from None
     if linear:
         image = np.where(image <= 0.04045, image / 12.92, ((image + 0.055) / 1.055) ** 2.4)
     return image

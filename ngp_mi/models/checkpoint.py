@@ -19,10 +19,15 @@ from pathlib import Path
 from typing import Any, Callable
 
 import torch
-from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
 from ngp_mi.atomic import atomic_path
+
+
+def module_tensors(modules: dict[str, torch.nn.Module], prefix: str = "") -> dict[str, torch.Tensor]:
+    """Every parameter and buffer of ``modules``, keyed ``<prefix><module name>.<key>``, on the CPU."""
+    return {f"{prefix}{name}.{key}": value.detach().contiguous().cpu()
+            for name, module in modules.items() for key, value in module.state_dict().items()}
 
 
 def save_checkpoint(root: str | Path, step: int, modules: dict[str, torch.nn.Module], state: dict[str, Any],
@@ -31,9 +36,7 @@ def save_checkpoint(root: str | Path, step: int, modules: dict[str, torch.nn.Mod
     root = Path(root)
     final = root / f"ckpt-{step:08d}"
     with atomic_path(final, directory=True) as tmp:
-        tensors = {f"{name}.{key}": value.detach().contiguous().cpu()
-                   for name, module in modules.items() for key, value in module.state_dict().items()}
-        save_file(tensors, tmp / "weights.safetensors")
+        save_file(module_tensors(modules), tmp / "weights.safetensors")
         torch.save({**state, "step": step}, tmp / "state.pt")
     for old in list_checkpoints(root)[:-keep]:
         shutil.rmtree(old)
@@ -73,16 +76,14 @@ def list_checkpoints(root: str | Path) -> list[Path]:
     return sorted(p for p in root.glob("ckpt-*") if (p / "state.pt").exists() and (p / "weights.safetensors").exists())
 
 
-def saved_modules(path: str | Path) -> set[str]:
-    """Names of the modules a checkpoint holds weights for (read from the file's header only)."""
-    with safe_open(Path(path) / "weights.safetensors", framework="pt") as f:
-        return {key.split(".", 1)[0] for key in f.keys()}
-
-
 def load_checkpoint(path: str | Path, modules: dict[str, torch.nn.Module]) -> dict[str, Any]:
     """Load weights into ``modules`` (strictly: every key must match) and return the state dict."""
-    path = Path(path)
-    tensors = read_weights(path)
+    load_weights(modules, read_weights(path), path)
+    return read_state(path)  # on the CPU: optimisers move state to their parameters
+
+
+def load_weights(modules: dict[str, torch.nn.Module], tensors: dict[str, torch.Tensor], path: str | Path) -> None:
+    """Load a checkpoint's ``tensors`` (read from ``path``) into ``modules``; every key must match."""
     for name, module in modules.items():
         prefix = f"{name}."
         own = {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
@@ -93,15 +94,18 @@ def load_checkpoint(path: str | Path, modules: dict[str, torch.nn.Module]) -> di
         if missing or unexpected:
             raise ValueError(f"{path}: checkpoint does not fit module {name!r} "
                              f"(missing {list(missing)[:3]}, unexpected {list(unexpected)[:3]})")
-    return read_state(path)  # on the CPU: optimisers move state to their parameters
+
+
+def _checkpoints_of(run: str | Path) -> list[Path]:
+    checkpoints = list_checkpoints(run)
+    if not checkpoints:
+        raise ValueError(f"{run}: no checkpoint found (ckpt-*/weights.safetensors + state.pt)")
+    return checkpoints
 
 
 def newest_checkpoint(run: str | Path) -> Path:
     """The newest complete checkpoint of a training run; the error names the run."""
-    checkpoints = list_checkpoints(run)
-    if not checkpoints:
-        raise ValueError(f"{run}: no checkpoint found (ckpt-*/weights.safetensors + state.pt)")
-    return checkpoints[-1]
+    return _checkpoints_of(run)[-1]
 
 
 def read_state(path: str | Path) -> dict[str, Any]:
@@ -117,32 +121,34 @@ def read_state(path: str | Path) -> dict[str, Any]:
     return state
 
 
-def newest_readable(run: str | Path) -> tuple[Path, dict[str, Any]]:
-    """The newest checkpoint of ``run`` whose files read, and its state. A newer damaged one is
-    skipped with a warning that names the file; when none reads, the error names each."""
-    checkpoints = list_checkpoints(run)
-    if not checkpoints:
-        raise ValueError(f"{run}: no checkpoint found (ckpt-*/weights.safetensors + state.pt)")
+def read_newest(run: str | Path) -> tuple[Path, dict[str, Any], dict[str, torch.Tensor]]:
+    """The newest checkpoint of ``run`` whose files read: its path, state and tensors. A newer
+    damaged one is skipped with a warning that names the file; when none reads, the error names each."""
     damaged: list[str] = []
-    for path in reversed(checkpoints):
+    for path in reversed(_checkpoints_of(run)):
         try:
-            state = read_state(path)
-            read_weights(path)
+            state, tensors = read_state(path), read_weights(path)
         except DamagedCheckpoint as exc:
             damaged.append(str(exc))
             continue
         for reason in damaged:
-            warnings.warn(f"{reason}; using the older {path.name} instead", stacklevel=2)
-        return path, state
+            warnings.warn(f"{reason}; using the older {path.name} instead", stacklevel=3)
+        return path, state, tensors
     raise DamagedCheckpoint(f"{run}: no checkpoint reads: " + "; ".join(damaged))
+
+
+def newest_readable(run: str | Path) -> tuple[Path, dict[str, Any]]:
+    """The path and state of :func:`read_newest`."""
+    path, state, _ = read_newest(run)
+    return path, state
 
 
 def load_newest(run: str | Path, build: Callable[[dict[str, Any]], Any]) -> Any:
     """The model ``build(state)`` makes from the state of the run's newest checkpoint, with that
     checkpoint's weights loaded into its ``networks()``; None when ``build`` returns None (the run
     has no such model)."""
-    path, state = newest_readable(run)
+    path, state, tensors = read_newest(run)
     model = build(state)
     if model is not None:
-        load_checkpoint(path, model.networks())
+        load_weights(model.networks(), tensors, path)
     return model

@@ -25,7 +25,7 @@ from safetensors.torch import load_file, save_file
 
 from ngp_mi.atomic import atomic_path, write_json
 from ngp_mi.models.base import config_from_dict
-from ngp_mi.models.checkpoint import newest_readable
+from ngp_mi.models.checkpoint import load_weights, module_tensors, newest_readable
 from ngp_mi.models.maps import MapsConfig, MapsModel
 from ngp_mi.models.shape import ShapeConfig, ShapeModel
 from ngp_mi.models.specular import SpecularConfig, SpecularModel
@@ -52,8 +52,7 @@ def resolve(name_or_path: str | Path) -> Path:
 
 
 def _tensors(model: Any, names: tuple[str, ...], prefix: str) -> dict[str, torch.Tensor]:
-    return {f"{prefix}.{name}.{key}": value.detach().contiguous().cpu()
-            for name in names for key, value in getattr(model, name).state_dict().items()}
+    return module_tensors({name: getattr(model, name) for name in names}, f"{prefix}.")
 
 
 def _sha256(path: Path) -> str:
@@ -104,13 +103,8 @@ def export_model(out: str | Path, maps_run: str | Path, shape_run: str | Path | 
 
 
 def _load_into(model: Any, tensors: dict[str, torch.Tensor], prefix: str, names: tuple[str, ...], file: Path) -> None:
-    for name in names:
-        own = {k[len(prefix) + len(name) + 2:]: v for k, v in tensors.items() if k.startswith(f"{prefix}.{name}.")}
-        try:
-            getattr(model, name).load_state_dict(own, strict=True)
-        except RuntimeError as exc:
-            raise ValueError(f"{file}: the weights do not fit {name} of the card's config "
-                             f"({str(exc).splitlines()[0]})") from None
+    own = {key[len(prefix) + 1:]: value for key, value in tensors.items() if key.startswith(f"{prefix}.")}
+    load_weights({name: getattr(model, name) for name in names}, own, file)
 
 
 def load_model(name_or_path: str | Path) -> tuple[MapsModel, SpecularModel | None, ShapeModel | None, dict[str, Any]]:

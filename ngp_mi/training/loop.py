@@ -20,8 +20,7 @@ from torch.utils.data import default_collate
 
 from ngp_mi.atomic import write_text
 from ngp_mi.models.base import BaseModel
-from ngp_mi.models.checkpoint import (list_checkpoints, load_checkpoint, newest_readable, remove_temporaries,
-                                      save_checkpoint, saved_modules)
+from ngp_mi.models.checkpoint import list_checkpoints, load_weights, read_newest, remove_temporaries, save_checkpoint
 from ngp_mi.training.recipe import training_device
 
 
@@ -91,10 +90,10 @@ def resume(out: Path, models: Sequence[BaseModel], optional: Sequence[BaseModel]
     remove_temporaries(out)
     if not list_checkpoints(out):
         return 0, None
-    path, _ = newest_readable(out)
-    saved = saved_modules(path)
+    path, state, tensors = read_newest(out)
+    saved = {key.split(".", 1)[0] for key in tensors}
     loaded = [m for m in models] + [m for m in optional if saved & set(m.networks())]
-    state = load_checkpoint(path, {name: n for model in loaded for name, n in model.networks().items()})
+    load_weights({name: n for model in loaded for name, n in model.networks().items()}, tensors, path)
     for model in loaded:
         model.load_optimizer_state(state)
     return int(state["step"]), path
