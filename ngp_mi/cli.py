@@ -356,13 +356,18 @@ def fit_shape_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start", default=default(FitConfig, "start"),
                    help="'sphere', 'zs' (the shape prior's best latent, then z_s fitted) or a mesh file "
                         "(default: %(default)s)")
-    p.add_argument("--model", help="with --start zs: a shipped model or model folder with a shape prior")
+    p.add_argument("--model", help="a shipped model or model folder: its map networks form the image term (z_da "
+                                    "fitted too) and its shape prior starts --start zs")
+    p.add_argument("--maps-run", help="a `train maps` output folder for the image term, instead of --model")
     p.add_argument("--shape-run", help="with --start zs: a `train shape` output folder")
     p.add_argument("--zs-steps", type=at_least(0), default=default(FitConfig, "zs_steps"),
                    help="steps of z_s before the vertices (default: %(default)s)")
     p.add_argument("--mask-weight", type=float, default=default(FitConfig, "mask_weight"), help="(default: %(default)s)")
     p.add_argument("--depth-weight", type=float, default=default(FitConfig, "depth_weight"),
                    help="0 fits masks only (default: %(default)s)")
+    p.add_argument("--image-weight", type=float, default=default(FitConfig, "image_weight"),
+                   help="weight of the image L1 (linear radiance) through NGP's networks; needs --model or "
+                        "--maps-run and path-traced targets (default: %(default)s)")
     p.add_argument("--no-silhouette", action="store_true", help="interior gradients only (the fast Π_v)")
     p.add_argument("--spp", type=at_least(1), default=default(FitConfig, "spp"), help="(default: %(default)s)")
     p.add_argument("--boundary-spp", type=at_least(1), default=default(FitConfig, "boundary_spp"),
@@ -375,15 +380,17 @@ def fit_shape(args: argparse.Namespace) -> int:
     config = FitConfig(targets=args.targets, shape_id=args.shape_id, held_out=args.held_out, steps=args.steps,
                        lr=args.lr, lam=args.lam, start=args.start, mask_weight=args.mask_weight,
                        depth_weight=args.depth_weight, silhouette=not args.no_silhouette, spp=args.spp,
-                       boundary_spp=args.boundary_spp, zs_steps=args.zs_steps)
+                       boundary_spp=args.boundary_spp, zs_steps=args.zs_steps, image_weight=args.image_weight)
+    from ngp_mi.models.shape import ShapeModel
+    from ngp_mi.pipeline import NGP
+
+    ngp = (NGP(args.maps_run) if args.maps_run else
+           NGP.pretrained(args.model) if args.model else None)
     shape_model = None
     if args.start == "zs":
-        from ngp_mi.models.shape import ShapeModel
-        from ngp_mi.pipeline import NGP
-
         shape_model = ShapeModel.from_run(args.shape_run) if args.shape_run else (
-            NGP.pretrained(args.model or "chair").shape_model)
-    summary = fit_shape(config, args.out, shape_model)
+            ngp.shape_model if ngp is not None and ngp.shape_model is not None else NGP.pretrained("chair").shape_model)
+    summary = fit_shape(config, args.out, shape_model, ngp)
     print(f"fit-shape: loss {summary['loss_start']:.5f} -> {summary['loss_end']:.5f}, mask IoU "
           f"{summary['mask_iou_fitted']:.3f}" + (f", Chamfer-L2 {summary['chamfer_start']:.5f} -> "
                                                  f"{summary['chamfer_end']:.5f}" if summary["chamfer_end"] else ""))

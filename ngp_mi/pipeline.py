@@ -7,7 +7,9 @@ the camera v (Π_v is Mitsuba's depth projection), the appearance (a latent z_da
 exemplar albedo image through E_da), and the lights L (any number, position and intensity).
 
 :func:`ngp_image` forms one view's image for each variant of the paper (Sec. 5, App. "NGP
-variants") and its ablations; :class:`NGP` loads the trained models and renders shapes
+variants") and its ablations. The stage functions keep autograd on, so a fit can differentiate an
+image through every network and Π_v (``ngp-mi fit-shape``); :class:`NGP` and :class:`NGPScene`
+render without it; :class:`NGP` loads the trained models and renders shapes
 (``ngp-mi generate``, :mod:`ngp_mi.commands.generate`, writes images, maps and a report).
 """
 
@@ -105,7 +107,6 @@ def at_training_distance(depth: torch.Tensor, mask: torch.Tensor, camera: Camera
     return depth - offset * mask if offset else depth
 
 
-@torch.no_grad()
 def generate_normals(maps: MapsModel, depth: torch.Tensor, mask: torch.Tensor, camera: Camera,
                      variant: str = "ngp") -> torch.Tensor:
     """N^g = G_n(d) (paper Eq. image formation), or the depth map's own normals (ablation ``no_gn``)."""
@@ -115,7 +116,6 @@ def generate_normals(maps: MapsModel, depth: torch.Tensor, mask: torch.Tensor, c
     return maps.generate_normals(depth_to_net(at_training_distance(depth, mask, camera), mask), [camera], own)
 
 
-@torch.no_grad()
 def generate_albedo(maps: MapsModel, depth: torch.Tensor, mask: torch.Tensor, camera: Camera, bounds: np.ndarray,
                     normal: torch.Tensor, z_da: torch.Tensor, variant: str = "ngp") -> torch.Tensor:
     """I_da^g = G_da(NOC(d), N^g, z_da) in [0, 1] (paper Eq. image formation), or white (ablation ``no_gda``)."""
@@ -125,7 +125,6 @@ def generate_albedo(maps: MapsModel, depth: torch.Tensor, mask: torch.Tensor, ca
     return (maps.G_da(torch.cat([noc, normal], 1), z_da) + 1) / 2
 
 
-@torch.no_grad()
 def realistic_specular(maps: MapsModel, specular: SpecularModel, normal: torch.Tensor, albedo: torch.Tensor,
                        mask: torch.Tensor, camera: Camera) -> torch.Tensor:
     """G_sp^real(N^g, I_df^g): the learned specular map, from the diffuse image under the training rig
@@ -134,7 +133,6 @@ def realistic_specular(maps: MapsModel, specular: SpecularModel, normal: torch.T
     return specular.specular(normal, base, mask)
 
 
-@torch.no_grad()
 def shade_maps(normal: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor, camera: Camera,
                lights: Sequence[Light], variant: str, constants: Constants,
                added_lights: Sequence[Light] = ()) -> torch.Tensor:
@@ -153,7 +151,6 @@ def shade_maps(normal: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor, d
     return image
 
 
-@torch.no_grad()
 def ngp_image(maps: MapsModel, specular: SpecularModel | None, depth: torch.Tensor, mask: torch.Tensor,
               camera: Camera, bounds: np.ndarray, z_da: torch.Tensor, lights: Sequence[Light], variant: str = "ngp",
               added_lights: Sequence[Light] = (), constants: Constants | None = None) -> dict[str, torch.Tensor]:
@@ -227,6 +224,7 @@ class NGP:
                 return self.maps.E_da(2 * exemplar - 1)[0]
         return latent(seed or 0, self.maps.config.latent_dim)[None]
 
+    @torch.no_grad()
     def render(self, mesh: TriangleMesh, camera: Camera, z_da: torch.Tensor, lights: Sequence[Light],
                variant: str = "ngp", added_lights: Sequence[Light] = (),
                constants: Constants | None = None) -> dict[str, torch.Tensor]:
@@ -406,6 +404,7 @@ class NGPScene:
         projected = project_depth(torch.as_tensor(mesh.vertices, dtype=torch.float32), mesh.faces, self.camera)
         return projected.depth, projected.mask
 
+    @torch.no_grad()
     def render(self, maps: bool = False) -> dict[str, torch.Tensor]:
         """The image (1, 3, H, W, linear radiance); with ``maps``, also depth, mask, normal, albedo,
         the shaded image before the blend and (variants that blend it) the specular map."""

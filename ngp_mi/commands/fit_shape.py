@@ -41,9 +41,10 @@ from ngp_mi.geometry.families import generate
 from ngp_mi.geometry.laplacian import LargeSteps
 from ngp_mi.geometry.loaders import load_mesh
 from ngp_mi.geometry.mesh import TriangleMesh
+from ngp_mi.lights import Light, light_from_dict
 from ngp_mi.geometry.occupancy import surface_samples, voxel_iou
 from ngp_mi.render.depth import project_depth
-from ngp_mi.viz import depth_to_uint8, labelled_grid, save_animation, save_png
+from ngp_mi.viz import chw_to_uint8, depth_to_uint8, labelled_grid, linear_to_srgb, save_animation, save_png
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,6 +64,8 @@ class FitConfig:
     sphere_subdivisions: int = 4
     mask_weight: float = 1.0
     depth_weight: float = 1.0
+    image_weight: float = 1.0  # with map networks (--model) and path-traced targets; else off
+    zda_lr: float = 5e-2  # Adam's step for the appearance code z_da, fitted with the image term
     silhouette: bool = True  # silhouette gradients (else the fast Π_v: interior gradients only)
     spp: int = 8
     boundary_spp: int = 2
@@ -73,8 +76,9 @@ class FitConfig:
         for name in ("steps", "spp", "boundary_spp", "checkpoint_every", "frame_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
-        if not (self.lr > 0 and self.lam >= 0 and self.mask_weight >= 0 and self.depth_weight >= 0):
-            raise ValueError("--lr must be > 0 and --lam, --mask-weight, --depth-weight >= 0")
+        if not (self.lr > 0 and self.zda_lr > 0 and self.lam >= 0 and self.mask_weight >= 0 and self.depth_weight >= 0
+                and self.image_weight >= 0):
+            raise ValueError("--lr must be > 0 and --lam, --mask-weight, --depth-weight, --image-weight >= 0")
         if self.mask_weight == 0 and self.depth_weight == 0:
             raise ValueError("fit-shape needs a loss: --mask-weight or --depth-weight > 0")
 
@@ -85,6 +89,8 @@ class Targets:
     mask: torch.Tensor  # (N, 1, H, W)
     depth: torch.Tensor  # (N, 1, H, W), 0 off the mask
     record: dict[str, Any]  # the first view's manifest record
+    images: torch.Tensor | None = None  # (N, 3, H, W) path-traced, linear radiance (render-dataset --real-spp)
+    lights: list[list[Light]] | None = None  # each image's lights
 
 
 def load_targets(root: str | Path, shape_id: str | None = None) -> Targets:
@@ -95,7 +101,8 @@ def load_targets(root: str | Path, shape_id: str | None = None) -> Targets:
     if not mine:
         shapes = sorted({r["shape_id"] for r in records})
         raise ValueError(f"{root}: no views of shape {shape_id!r} (it has {', '.join(shapes[:5])}…)")
-    cameras, masks, depths = [], [], []
+    cameras, masks, depths, images, lights = [], [], [], [], []
+    with_images = all("real" in r["files"] and isinstance(r.get("lights"), list) for r in mine)
     for r in mine:
         channels = set(r["channels"])
         if not {"mask", "depth"} <= channels:
@@ -107,17 +114,51 @@ def load_targets(root: str | Path, shape_id: str | None = None) -> Targets:
         maps = read_exr(Path(root) / r["files"]["maps"], ["mask", "depth"])
         masks.append(maps["mask"])
         depths.append(maps["depth"] * maps["mask"])
+        if with_images:
+            images.append(read_exr(Path(root) / r["files"]["real"], ["rgb"])["rgb"].transpose(2, 0, 1))
+            lights.append([light_from_dict(light, f"{root}: view {r['view']} of {shape_id}, light {k}")
+                           for k, light in enumerate(r["lights"])])
     stack = lambda xs: torch.from_numpy(np.stack(xs)[:, None].astype(np.float32))  # noqa: E731
-    return Targets(cameras, stack(masks), stack(depths), mine[0])
+    return Targets(cameras, stack(masks), stack(depths), mine[0],
+                   torch.from_numpy(np.stack(images).astype(np.float32)) if with_images else None,
+                   lights if with_images else None)
 
 
 def fit_losses(coverage: torch.Tensor, depth: torch.Tensor, target_mask: torch.Tensor, target_depth: torch.Tensor,
-               mask_weight: float, depth_weight: float) -> dict[str, torch.Tensor]:
-    """The fit's named loss terms (module docstring) and their weighted sum ``total``."""
+               mask_weight: float, depth_weight: float, image: torch.Tensor | None = None,
+               target_image: torch.Tensor | None = None, image_weight: float = 0.0) -> dict[str, torch.Tensor]:
+    """The fit's named loss terms (module docstring) and their weighted sum ``total``; with ``image``,
+    also the image term mean |I − I_target| in linear radiance."""
     terms = {"mask": (coverage - target_mask).square().mean(),
              "depth": (target_mask * (depth - coverage * target_depth)).square().mean()}
     terms["total"] = mask_weight * terms["mask"] + depth_weight * terms["depth"]
+    if image is not None:
+        terms["image"] = (image - target_image).abs().mean()
+        terms["total"] = terms["total"] + image_weight * terms["image"]
     return terms
+
+
+@dataclasses.dataclass
+class ImageTerm:
+    """What the image term needs: NGP's networks (:class:`ngp_mi.pipeline.NGP`), the variant that
+    forms the image, and the appearance code z_da (1, D) fitted beside the shape."""
+    ngp: Any
+    variant: str
+    z_da: torch.Tensor
+
+
+def fit_images(term: ImageTerm, depth: torch.Tensor, coverage: torch.Tensor, cameras: list[Camera],
+               bounds: np.ndarray, lights: list[list[Light]]) -> torch.Tensor:
+    """NGP's image (N, 3, H, W) of each view from Π_v's pixel-averaged depth d̄ and coverage c, with
+    gradients into both and into z_da: the networks read the depth d̄ / c of the covered samples
+    and take c as the mask (:func:`ngp_mi.pipeline.ngp_image`, which weights the image by it), so
+    the silhouette gradients reach the image too."""
+    from ngp_mi.pipeline import ngp_image  # the image formation of the paper, one stage per function
+
+    depth_of_hits = torch.where(coverage > 1e-3, depth / coverage.clamp_min(1e-3), torch.zeros_like(depth))
+    maps = term.ngp.maps
+    return torch.cat([ngp_image(maps, term.ngp.specular, depth_of_hits[i:i + 1], coverage[i:i + 1], camera, bounds,
+                                term.z_da, lights[i], term.variant)["image"] for i, camera in enumerate(cameras)])
 
 
 def _source_mesh(record: dict[str, Any]) -> TriangleMesh | None:
@@ -141,12 +182,18 @@ def _iou(coverage: torch.Tensor, mask: torch.Tensor) -> float:
 
 
 def _step_losses(vertices: torch.Tensor, faces: np.ndarray, targets: Targets, fitted: slice, config: FitConfig,
-                 step: int) -> tuple[Any, dict[str, torch.Tensor]]:
+                 step: int, image_term: ImageTerm | None = None) -> tuple[Any, dict[str, torch.Tensor]]:
     """One step's projection of the fitted views (silhouette samples seeded by the step) and its loss terms."""
     maps = project_depth(vertices, faces, targets.cameras[fitted], silhouette_grad=config.silhouette, spp=config.spp,
                          boundary_spp=config.boundary_spp, seed=step)
+    image = target_image = None
+    if image_term is not None:
+        corners = vertices.detach().numpy()
+        image = fit_images(image_term, maps.depth, maps.mask, targets.cameras[fitted],
+                           np.stack([corners.min(0), corners.max(0)]), targets.lights[fitted])
+        target_image = targets.images[fitted]
     return maps, fit_losses(maps.mask, maps.depth, targets.mask[fitted], targets.depth[fitted], config.mask_weight,
-                            config.depth_weight)
+                            config.depth_weight, image, target_image, config.image_weight)
 
 
 def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitConfig,
@@ -211,12 +258,29 @@ def _start_mesh(config: FitConfig) -> TriangleMesh:
     return load_mesh(config.start)
 
 
-def fit_shape(config: FitConfig, out: str | Path, shape_model: Any = None,
+def _image_term(config: FitConfig, targets: Targets, ngp: Any, log: Callable[[str], None]) -> ImageTerm | None:
+    """The image term when it can be formed (map networks given, targets with path-traced images)."""
+    if config.image_weight == 0:
+        return None
+    if ngp is None or targets.images is None:
+        log("fit-shape: no image term (" + ("no map networks: --model or --maps-run" if ngp is None else
+                                           "the targets have no path-traced images: render-dataset --real-spp") + ")")
+        return None
+    variant = "ngp" if ngp.specular is not None else "no_sp"
+    for module in (ngp.maps, ngp.specular):
+        if module is not None:
+            module.eval().requires_grad_(False)  # the networks stay as trained; only the scene moves
+    return ImageTerm(ngp, variant, torch.zeros(1, ngp.maps.config.latent_dim, requires_grad=True))
+
+
+def fit_shape(config: FitConfig, out: str | Path, shape_model: Any = None, ngp: Any = None,
               log: Callable[[str], None] = print) -> dict[str, Any]:
     """Run (or resume) the fit; returns the summary written to ``fit.json``. ``shape_model``: the shape
-    prior (:class:`ngp_mi.models.shape.ShapeModel`) for ``start="zs"``."""
+    prior (:class:`ngp_mi.models.shape.ShapeModel`) for ``start="zs"``; ``ngp``: the map networks
+    (:class:`ngp_mi.pipeline.NGP`) for the image term, z_da fitted with it."""
     out = Path(out)
     targets = load_targets(config.targets, config.shape_id)
+    image_term = _image_term(config, targets, ngp, log)
     n = len(targets.cameras)
     if not 0 <= config.held_out < n:
         raise ValueError(f"--held-out {config.held_out}: the shape has {n} views; keep at least one to fit")
@@ -241,7 +305,10 @@ def fit_shape(config: FitConfig, out: str | Path, shape_model: Any = None,
     faces = start.faces
     param = LargeSteps(faces, len(start.vertices), config.lam)
     u = param.to_u(torch.as_tensor(start.vertices)).requires_grad_(True)
-    optimizer = torch.optim.Adam([u], lr=config.lr)
+    groups = [{"params": [u], "lr": config.lr}]
+    if image_term is not None:
+        groups.append({"params": [image_term.z_da], "lr": config.zda_lr})
+    optimizer = torch.optim.Adam(groups)
     history: list[dict[str, float]] = []
     frames: list[np.ndarray] = []
     state_dir, step = out / "state", 0
@@ -250,16 +317,19 @@ def fit_shape(config: FitConfig, out: str | Path, shape_model: Any = None,
         saved = json.loads((state_dir / "state.json").read_text())
         if saved["config"] != json.loads(json.dumps(settings)):
             raise ValueError(f"{state_dir}: this fit was started with other settings; use a new --out")
-        u.data.copy_(load_file(state_dir / "u.safetensors")["u"])
+        saved_tensors = load_file(state_dir / "u.safetensors")
+        u.data.copy_(saved_tensors["u"])
+        if image_term is not None:
+            image_term.z_da.data.copy_(saved_tensors["z_da"])
         optimizer.load_state_dict(torch.load(state_dir / "optimizer.pt", weights_only=True))
         step, history = saved["step"], saved["history"]
         log(f"fit-shape: resumed at step {step} from {state_dir}")
     began, first = time.perf_counter(), step
     while step < config.steps:
-        maps, terms = _step_losses(param.vertices(u), faces, targets, fitted, config, step)
+        maps, terms = _step_losses(param.vertices(u), faces, targets, fitted, config, step, image_term)
         optimizer.zero_grad(set_to_none=True)
         terms["total"].backward()
-        if not torch.isfinite(u.grad).all():
+        if not all(torch.isfinite(p.grad).all() for group in groups for p in group["params"]):
             raise RuntimeError(f"fit-shape: a non-finite gradient at step {step}; nothing of it was applied")
         optimizer.step()
         step += 1
@@ -271,8 +341,8 @@ def fit_shape(config: FitConfig, out: str | Path, shape_model: Any = None,
             log(f"fit-shape: step {step}/{config.steps}  loss {history[-1]['total']:.5f}  {rate:.2f} steps/s  "
                 f"ETA {(config.steps - step) / rate:.0f} s")
         if step % config.checkpoint_every == 0 or step == config.steps:
-            _save_state(state_dir, u, optimizer, step, history, settings)
-    return _finish(config, out, targets, param, u, faces, start, history, frames, log, latent_phase)
+            _save_state(state_dir, u, optimizer, step, history, settings, image_term)
+    return _finish(config, out, targets, param, u, faces, start, history, frames, log, latent_phase, image_term)
 
 
 def _overlay(fit: torch.Tensor, target: torch.Tensor) -> np.ndarray:
@@ -286,10 +356,13 @@ def _overlay(fit: torch.Tensor, target: torch.Tensor) -> np.ndarray:
 
 
 def _save_state(folder: Path, u: torch.Tensor, optimizer: torch.optim.Optimizer, step: int,
-                history: list[dict[str, float]], settings: dict[str, Any]) -> None:
+                history: list[dict[str, float]], settings: dict[str, Any], image_term: ImageTerm | None) -> None:
     folder.mkdir(parents=True, exist_ok=True)
+    tensors = {"u": u.detach().contiguous()}
+    if image_term is not None:
+        tensors["z_da"] = image_term.z_da.detach().contiguous()
     with atomic_path(folder / "u.safetensors") as tmp:
-        save_file({"u": u.detach().contiguous()}, tmp)
+        save_file(tensors, tmp)
     with atomic_path(folder / "optimizer.pt") as tmp:
         torch.save(optimizer.state_dict(), tmp)
     write_json(folder / "state.json", {"step": step, "history": history, "config": settings})  # last: it commits
@@ -297,11 +370,13 @@ def _save_state(folder: Path, u: torch.Tensor, optimizer: torch.optim.Optimizer,
 
 def _finish(config: FitConfig, out: Path, targets: Targets, param: LargeSteps, u: torch.Tensor, faces: np.ndarray,
             start: TriangleMesh, history: list[dict[str, float]], frames: list[np.ndarray],
-            log: Callable[[str], None], latent_phase: dict[str, Any]) -> dict[str, Any]:
+            log: Callable[[str], None], latent_phase: dict[str, Any], image_term: ImageTerm | None) -> dict[str, Any]:
     with torch.no_grad():
         vertices = param.vertices(u).detach()
         maps = project_depth(vertices, faces, targets.cameras)
-        before = project_depth(torch.as_tensor(start.vertices, dtype=torch.float32), faces, targets.cameras).mask
+        start_vertices = torch.as_tensor(start.vertices, dtype=torch.float32)
+        start_maps = project_depth(start_vertices, faces, targets.cameras)
+        before = start_maps.mask
     mesh = TriangleMesh(vertices.numpy(), faces, name="fit")
     _write_obj(out / "fit.obj", mesh)
     n, fitted = len(targets.cameras), len(targets.cameras) - config.held_out
@@ -319,9 +394,22 @@ def _finish(config: FitConfig, out: Path, targets: Targets, param: LargeSteps, u
     _plot(history, out / "curves.png")
     rows = [[_overlay(maps.mask[i, 0], targets.mask[i, 0]), depth_to_uint8(targets.depth[i, 0], targets.mask[i, 0]),
              depth_to_uint8(maps.depth[i, 0], maps.mask[i, 0])] for i in range(n)]
+    columns = ["mask: target / fit / both", "target depth", "fitted depth"]
+    if image_term is not None:
+        with torch.no_grad():
+            z_fit = image_term.z_da.detach()
+            images = {"start": fit_images(dataclasses.replace(image_term, z_da=torch.zeros_like(z_fit)),
+                                          start_maps.depth, start_maps.mask, targets.cameras, start.bounds,
+                                          targets.lights),
+                      "end": fit_images(dataclasses.replace(image_term, z_da=z_fit), maps.depth, maps.mask,
+                                        targets.cameras, mesh.bounds, targets.lights)}
+        summary.update(image_scores(images, targets.images, fitted), variant=image_term.variant,
+                       z_da=z_fit[0].tolist())
+        for i, row in enumerate(rows):
+            row += [chw_to_uint8(targets.images[i]), chw_to_uint8(images["start"][i]), chw_to_uint8(images["end"][i])]
+        columns += ["target image", f"NGP ({image_term.variant}), start", "NGP, fitted"]
     save_png(out / "sheet.png", labelled_grid(rows, [f"view {i}{' (held out)' if i >= fitted else ''}, IoU {ious[i]:.3f}"
-                                                     for i in range(n)], ["mask: target / fit / both", "target depth",
-                                                                          "fitted depth"]))
+                                                     for i in range(n)], columns))
     if frames:
         save_animation(out / "progress.gif", frames, fps=6)
     write_json(out / "fit.json", summary)
@@ -331,9 +419,32 @@ def _finish(config: FitConfig, out: Path, targets: Targets, param: LargeSteps, u
                f"{summary['steps']} steps; loss {summary['loss_start']:.5f} → {summary['loss_end']:.5f}; {chamfer}"
                f"mask IoU {summary['mask_iou_fitted']:.3f} on the fitted views"
                + (f", {summary['mask_iou_held_out']:.3f} on the held-out ones" if config.held_out else "")
+               + (_image_sentence(summary) if image_term is not None else "")
                + ".\n\n![curves](curves.png)\n\n![target and fit per view](sheet.png)\n\n![progress](progress.gif)\n")
     log(f"fit-shape: wrote {out / 'fit.obj'}, {out / 'report.md'}")
     return summary
+
+
+def image_scores(images: dict[str, torch.Tensor], target: torch.Tensor, fitted: int) -> dict[str, float | None]:
+    """PSNR (dB) and FLIP of the sRGB images (whole image, clipped to [0, 1]) against the targets, at
+    the start and the end of the fit, averaged over the fitted and over the held-out views."""
+    from ngp_mi.eval.metrics import flip, psnr
+
+    srgb = lambda x: linear_to_srgb(np.clip(x.permute(1, 2, 0).numpy(), 0, 1))  # noqa: E731
+    scores: dict[str, float | None] = {}
+    for when, image in images.items():
+        per_view = [(psnr(srgb(t), srgb(i)), flip(srgb(t), srgb(i))[0]) for t, i in zip(target, image)]
+        for part, views in (("fitted", per_view[:fitted]), ("held_out", per_view[fitted:])):
+            scores[f"psnr_{part}_{when}"] = float(np.mean([p for p, _ in views])) if views else None
+            scores[f"flip_{part}_{when}"] = float(np.mean([f for _, f in views])) if views else None
+    return scores
+
+
+def _image_sentence(summary: dict[str, Any]) -> str:
+    part = "held_out" if summary["psnr_held_out_end"] is not None else "fitted"
+    return (f"; NGP's image ({summary['variant']}) on the {part.replace('_', '-')} views: PSNR "
+            f"{summary[f'psnr_{part}_start']:.2f} → {summary[f'psnr_{part}_end']:.2f} dB, FLIP "
+            f"{summary[f'flip_{part}_start']:.3f} → {summary[f'flip_{part}_end']:.3f}")
 
 
 def _write_obj(path: Path, mesh: TriangleMesh) -> None:
@@ -351,7 +462,7 @@ def _plot(history: list[dict[str, float]], path: Path) -> None:
 
     steps = [h["step"] for h in history]
     fig, ax = plt.subplots(figsize=(6, 3.5))
-    for name in ("total", "mask", "depth"):
+    for name in [k for k in ("total", "mask", "depth", "image") if history and k in history[0]]:
         ax.semilogy(steps, [max(h[name], 1e-12) for h in history], label=name)
     ax.set_xlabel("step")
     ax.set_ylabel("loss")

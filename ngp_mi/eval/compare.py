@@ -234,8 +234,8 @@ def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: G
             t = maps_to_tensors(gbuffer.render(camera))
             with torch.no_grad():
                 mu, _ = model.E_da(2 * t["albedo"] - 1)
-            result = ngp_image(model, specular, t["depth"], t["mask"], camera, content.bounds, mu, lights, variant,
-                               extra, config.constants)
+                result = ngp_image(model, specular, t["depth"], t["mask"], camera, content.bounds, mu, lights,
+                                   variant, extra, config.constants)
             return result["image"][0].permute(1, 2, 0).numpy()
         return run
 

@@ -1,5 +1,7 @@
-"""ngp-mi fit-shape: a sphere fitted to a procedural chair's masks and depths through Π_v; resume; bad input."""
+"""ngp-mi fit-shape: a sphere fitted to a procedural chair's masks and depths through Π_v; the image
+term through NGP's networks (z_da fitted too); resume; bad input; the chains against finite differences."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -19,6 +21,79 @@ def chair_views(tmp_path_factory):
     render_dataset(DatasetConfig(source="chair", num_shapes=1, views=6, resolution=32, channels=("depth", "mask")),
                    out, progress=False)
     return out
+
+
+@pytest.fixture(scope="module")
+def chair_images(tmp_path_factory):
+    """Two chairs' masks, depths and 16-spp path-traced images under the rig, 32²."""
+    out = tmp_path_factory.mktemp("images")
+    render_dataset(DatasetConfig(source="chair", num_shapes=1, views=4, resolution=32, channels=("depth", "mask"),
+                                 real_spp=16), out, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def tiny_ngp(tiny_maps_run):
+    from ngp_mi.pipeline import NGP
+
+    return NGP(tiny_maps_run)
+
+
+def test_the_image_term_goes_through_the_networks_and_fits_z_da(chair_images, tiny_ngp, tmp_path):
+    config = FitConfig(str(chair_images), held_out=1, steps=6, sphere_subdivisions=2, checkpoint_every=3)
+    messages = []
+    summary = fit_shape(config, tmp_path, ngp=tiny_ngp, log=messages.append)
+    history = json.loads((tmp_path / "state" / "state.json").read_text())["history"]
+    assert all("image" in h and np.isfinite(h["image"]) and h["image"] > 0 for h in history)
+    assert history[-1]["image"] < history[0]["image"]
+    saved = load_file(tmp_path / "state" / "u.safetensors")
+    assert saved["z_da"].shape == (1, tiny_ngp.maps.config.latent_dim) and saved["z_da"].abs().max() > 0
+    assert summary["variant"] == "ngp" and summary["z_da"] == pytest.approx(saved["z_da"][0].tolist())
+    for key in ("psnr_fitted_start", "psnr_fitted_end", "psnr_held_out_end", "flip_held_out_end"):
+        assert np.isfinite(summary[key]), key
+    assert "NGP's image (ngp) on the held-out views: PSNR" in (tmp_path / "report.md").read_text()
+    assert all(p.requires_grad is False for p in tiny_ngp.maps.parameters())  # the networks stay as trained
+    # without networks or without images the term is off, and says why
+    fit_shape(dataclasses.replace(config, steps=1), tmp_path / "none", log=messages.append)
+    assert any("no image term (no map networks" in m for m in messages)
+
+
+def test_the_image_chain_matches_finite_differences(tiny_ngp):
+    """Depth and coverage of Π_v → G_n, G_da(z_da) → R_diff (Dr.Jit) → a weighted sum of the image:
+    the gradient in the depth, the coverage and z_da against central differences. Smooth directions:
+    a per-pixel random one crosses the kinks of the networks' activations in many pixels at once, and
+    the differences then converge only as O(h). G_sp^real (``ngp``) adds one more plain torch network
+    on top, which needs no check of its own."""
+    from ngp_mi.camera import Camera
+    from ngp_mi.commands.fit_shape import ImageTerm, fit_images
+    from ngp_mi.lights import overhead_rig
+    from ngp_mi.render.depth import project_depth
+
+    camera = Camera.orbit(10, -30, 32)
+    box = trimesh.creation.box((0.6, 0.5, 0.4))
+    with torch.no_grad():
+        projected = project_depth(torch.as_tensor(box.vertices, dtype=torch.float32), box.faces, camera)
+    mask = projected.mask
+    generator = torch.Generator().manual_seed(1)
+    weights = torch.rand(1, 3, 32, 32, generator=generator)
+    bounds = np.stack([box.vertices.min(0), box.vertices.max(0)])
+
+    def loss(depth, coverage, z_da):
+        term = ImageTerm(tiny_ngp, "no_sp", z_da)
+        return (weights * fit_images(term, depth * coverage, coverage, [camera], bounds, [overhead_rig()])).sum()
+
+    depth = projected.depth.clone().requires_grad_(True)
+    coverage = ((0.7 + 0.3 * torch.rand(mask.shape, generator=generator)) * mask).requires_grad_(True)
+    z_da = torch.randn(1, tiny_ngp.maps.config.latent_dim, generator=generator).requires_grad_(True)
+    loss(depth, coverage, z_da).backward()
+    y, x = torch.meshgrid(torch.linspace(-1, 1, 32), torch.linspace(-1, 1, 32), indexing="ij")
+    smooth = (0.3 + x - 0.5 * y)[None, None] * mask
+    for value, direction in ((depth, smooth), (coverage, smooth), (z_da, torch.randn(z_da.shape, generator=generator))):
+        with torch.no_grad():
+            plus, minus = (float(loss(*(v + s * 1e-3 * direction if v is value else v for v in (depth, coverage, z_da))))
+                           for s in (1, -1))
+        fd, analytic = (plus - minus) / 2e-3, float((value.grad * direction).sum())
+        assert abs(analytic - fd) < 0.02 * abs(fd) + 1e-3, (analytic, fd)
 
 
 def test_a_sphere_becomes_the_chair(chair_views, tmp_path):
