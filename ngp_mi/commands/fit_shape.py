@@ -71,6 +71,7 @@ class FitConfig:
     boundary_spp: int = 2
     checkpoint_every: int = 25
     frame_every: int = 10
+    retries: int = 3  # undone steps in a row (step size halved each time) before a fit gives up
 
     def __post_init__(self) -> None:
         for name in ("steps", "spp", "boundary_spp", "checkpoint_every", "frame_every"):
@@ -112,10 +113,16 @@ def load_targets(root: str | Path, shape_id: str | None = None) -> Targets:
         except (KeyError, ValueError) as exc:
             raise ValueError(f"{root}: view {r['view']} of {shape_id}: no usable camera ({exc})") from None
         maps = read_exr(Path(root) / r["files"]["maps"], ["mask", "depth"])
+        for name, values in maps.items():
+            if not np.isfinite(values).all():
+                raise ValueError(f"{root}/{r['files']['maps']}: channel {name!r} has non-finite values")
         masks.append(maps["mask"])
         depths.append(maps["depth"] * maps["mask"])
         if with_images:
-            images.append(read_exr(Path(root) / r["files"]["real"], ["rgb"])["rgb"].transpose(2, 0, 1))
+            image = read_exr(Path(root) / r["files"]["real"], ["rgb"])["rgb"]
+            if not np.isfinite(image).all():
+                raise ValueError(f"{root}/{r['files']['real']}: the image has non-finite values")
+            images.append(image.transpose(2, 0, 1))
             lights.append([light_from_dict(light, f"{root}: view {r['view']} of {shape_id}, light {k}")
                            for k, light in enumerate(r["lights"])])
     stack = lambda xs: torch.from_numpy(np.stack(xs)[:, None].astype(np.float32))  # noqa: E731
@@ -325,12 +332,34 @@ def fit_shape(config: FitConfig, out: str | Path, shape_model: Any = None, ngp: 
         step, history = saved["step"], saved["history"]
         log(f"fit-shape: resumed at step {step} from {state_dir}")
     began, first = time.perf_counter(), step
+    if step == 0:
+        with torch.no_grad():
+            seen = project_depth(param.vertices(u).detach(), faces, targets.cameras[fitted]).mask
+        if not seen.any():
+            raise ValueError(f"fit-shape: no fitted view of {config.targets} sees the start shape ({config.start}); "
+                             "start from a shape inside the cameras' views")
+    previous, troubles = u.detach().clone(), 0
     while step < config.steps:
         maps, terms = _step_losses(param.vertices(u), faces, targets, fitted, config, step, image_term)
-        optimizer.zero_grad(set_to_none=True)
-        terms["total"].backward()
-        if not all(torch.isfinite(p.grad).all() for group in groups for p in group["params"]):
-            raise RuntimeError(f"fit-shape: a non-finite gradient at step {step}; nothing of it was applied")
+        problem = _step_problem(maps.mask, terms["total"])
+        if problem is None:
+            optimizer.zero_grad(set_to_none=True)
+            terms["total"].backward()
+            if not all(torch.isfinite(p.grad).all() for group in groups for p in group["params"]):
+                problem = "a non-finite gradient"
+        if problem is not None:  # undo the step that led here and retry with half of it
+            troubles += 1
+            if troubles > config.retries:
+                raise RuntimeError(f"fit-shape: {problem} at step {step}, {troubles} times in a row after halving the "
+                                   f"step size; the state saved in {state_dir} holds none of it")
+            u.data.copy_(previous)
+            optimizer.state.clear()  # Adam's moments point the way that failed
+            for group in optimizer.param_groups:
+                group["lr"] *= 0.5
+            log(f"fit-shape: step {step}: {problem}; the last step undone, step size halved")
+            continue
+        troubles = 0
+        previous = u.detach().clone()
         optimizer.step()
         step += 1
         history.append({"step": step, **{k: float(v.detach()) for k, v in terms.items()}})
@@ -343,6 +372,16 @@ def fit_shape(config: FitConfig, out: str | Path, shape_model: Any = None, ngp: 
         if step % config.checkpoint_every == 0 or step == config.steps:
             _save_state(state_dir, u, optimizer, step, history, settings, image_term)
     return _finish(config, out, targets, param, u, faces, start, history, frames, log, latent_phase, image_term)
+
+
+def _step_problem(coverage: torch.Tensor, total: torch.Tensor) -> str | None:
+    """Why a step cannot be taken: the shape left every fitted view (no gradient would bring it
+    back), or a non-finite loss."""
+    if not bool(coverage.detach().gt(0).any()):
+        return "the shape left every fitted view"
+    if not bool(torch.isfinite(total.detach())):
+        return "a non-finite loss"
+    return None
 
 
 def _overlay(fit: torch.Tensor, target: torch.Tensor) -> np.ndarray:
@@ -361,6 +400,9 @@ def _save_state(folder: Path, u: torch.Tensor, optimizer: torch.optim.Optimizer,
     tensors = {"u": u.detach().contiguous()}
     if image_term is not None:
         tensors["z_da"] = image_term.z_da.detach().contiguous()
+    for name, tensor in tensors.items():
+        if not torch.isfinite(tensor).all():  # the loop never takes such a step; refuse rather than write it
+            raise RuntimeError(f"fit-shape: refusing to save a non-finite {name} at step {step} in {folder}")
     with atomic_path(folder / "u.safetensors") as tmp:
         save_file(tensors, tmp)
     with atomic_path(folder / "optimizer.pt") as tmp:
@@ -450,6 +492,8 @@ def _image_sentence(summary: dict[str, Any]) -> str:
 def _write_obj(path: Path, mesh: TriangleMesh) -> None:
     import trimesh
 
+    if not np.isfinite(mesh.vertices).all():
+        raise RuntimeError(f"fit-shape: refusing to write {path}: the mesh has non-finite vertices")
     with atomic_path(path) as tmp:
         trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(tmp, file_type="obj")
 
