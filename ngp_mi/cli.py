@@ -222,7 +222,8 @@ def compare(args: argparse.Namespace) -> int:
 
 
 def train_flags(p: argparse.ArgumentParser) -> None:
-    p.add_argument("stage", choices=["shape", "maps"], help="what to train")
+    p.add_argument("stage", choices=["shape", "maps", "e2e"],
+                   help="what to train (e2e: G_shape's decoder with the maps' 2-D losses through Π_v)")
     p.add_argument("--config", required=True, help="TOML recipe, e.g. train/maps_tiny.toml")
     p.add_argument("--out", help="output folder (default: the recipe's [train] out)")
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
@@ -233,8 +234,10 @@ def train_flags(p: argparse.ArgumentParser) -> None:
 def train(args: argparse.Namespace) -> int:
     if args.stage == "shape":
         from ngp_mi.training.shape import train_shape as run
-    else:
+    elif args.stage == "maps":
         from ngp_mi.training.maps import train_maps as run
+    else:
+        from ngp_mi.training.e2e import train_e2e as run
     out = run(args.config, out=args.out, overrides=args.set)
     print(f"train {args.stage}: outputs in {out}")
     return 0

@@ -43,7 +43,7 @@ from ngp_mi.geometry.loaders import load_mesh
 from ngp_mi.geometry.mesh import TriangleMesh
 from ngp_mi.lights import Light, light_from_dict
 from ngp_mi.geometry.occupancy import surface_samples, voxel_iou
-from ngp_mi.render.depth import project_depth
+from ngp_mi.render.depth import depth_of_hits, project_depth
 from ngp_mi.viz import chw_to_uint8, depth_to_uint8, labelled_grid, linear_to_srgb, save_animation, save_png
 
 
@@ -162,9 +162,8 @@ def fit_images(term: ImageTerm, depth: torch.Tensor, coverage: torch.Tensor, cam
     the silhouette gradients reach the image too."""
     from ngp_mi.pipeline import ngp_image  # the image formation of the paper, one stage per function
 
-    depth_of_hits = torch.where(coverage > 1e-3, depth / coverage.clamp_min(1e-3), torch.zeros_like(depth))
-    maps = term.ngp.maps
-    return torch.cat([ngp_image(maps, term.ngp.specular, depth_of_hits[i:i + 1], coverage[i:i + 1], camera, bounds,
+    hits, maps = depth_of_hits(depth, coverage), term.ngp.maps
+    return torch.cat([ngp_image(maps, term.ngp.specular, hits[i:i + 1], coverage[i:i + 1], camera, bounds,
                                 term.z_da, lights[i], term.variant)["image"] for i, camera in enumerate(cameras)])
 
 

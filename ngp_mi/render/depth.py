@@ -281,6 +281,13 @@ def project_depth(vertices: torch.Tensor, faces: np.ndarray | torch.Tensor, came
     return DepthMaps(depth=z, mask=hit, normal=normal, noc=noc)
 
 
+def depth_of_hits(depth: torch.Tensor, coverage: torch.Tensor, min_coverage: float = 1e-3) -> torch.Tensor:
+    """The mean depth of a pixel's covered samples, d̄ / c, from silhouette mode's pixel-averaged
+    depth d̄ and coverage c (0 where c < ``min_coverage``: the ratio of two noisy near-zero values is
+    noise); what networks trained on depth maps read, with c as the mask."""
+    return torch.where(coverage > min_coverage, depth / coverage.clamp_min(min_coverage), torch.zeros_like(depth))
+
+
 def supersampled_depth_coverage(vertices: torch.Tensor, faces: np.ndarray | torch.Tensor, camera: Camera,
                                 factor: int, phase: tuple[float, float] = (0.0, 0.0)) -> tuple[torch.Tensor, torch.Tensor]:
     """Reference pixel-averaged depth and coverage (1, 1, H, W), float64, without any sampling noise.

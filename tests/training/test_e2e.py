@@ -1,0 +1,93 @@
+"""ngp-mi train e2e: L_2D reaches G_shape's decoder through Π_v (and not with the link off), outputs,
+exact resume, and two processes with gloo."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from helpers import ROOT
+
+from ngp_mi.models.shape import ShapeModel
+from ngp_mi.training.e2e import E2ETrain, shape_depth_batch, train_e2e
+
+
+def e2e_recipe(tmp_path: Path, runs, name: str, **train) -> Path:
+    """train/e2e_tiny.toml from the tiny runs, its real maps those of the tiny maps run (no rendering)."""
+    maps_run, shape_run = runs
+    text = (ROOT / "train" / "e2e_tiny.toml").read_text()
+    text = text.replace('"outputs/train/maps_tiny"', f'"{maps_run}"').replace('"outputs/train/shape_tiny"',
+                                                                               f'"{shape_run}"')
+    text = text.replace('"outputs/data/maps_tiny"', f'"{Path(maps_run).parent / "data"}"')
+    text = text.replace('"outputs/train/e2e_tiny"', f'"{tmp_path / name}"')
+    for key, value in train.items():
+        text = text.replace(f"\n{key} = ", f"\n{key} = {value}\n# ", 1)
+    path = tmp_path / f"{name}.toml"
+    path.write_text(text)
+    return path
+
+
+def decoder(run) -> dict[str, torch.Tensor]:
+    return {k: v.clone() for k, v in ShapeModel.from_run(run).decoder.state_dict().items()}
+
+
+def test_the_depth_of_a_shape_batch_is_differentiable_in_the_decoder_only_with_the_link(runs):
+    shape = ShapeModel.from_run(runs[1])
+    train = E2ETrain(iterations=1, batch_size=2, extract_resolution=24, spp=2)
+    for link in (True, False):
+        shape.decoder.zero_grad(set_to_none=True)
+        batch, empty = shape_depth_batch(shape, 2, 32, seed=3, link=link, train=train)
+        assert batch["depth"].shape == batch["mask"].shape == (2, 1, 32, 32) and batch["K"].shape == (2, 3, 3)
+        assert float(batch["mask"].detach().sum()) > 0 and empty >= 0 and torch.isfinite(batch["depth"]).all()
+        assert batch["depth"].requires_grad == link
+        if link:
+            (batch["depth"] * batch["mask"].detach()).sum().backward()
+            grads = [p.grad for p in shape.decoder.parameters()]
+            assert all(g is not None and torch.isfinite(g).all() for g in grads) and any(g.abs().sum() > 0 for g in grads)
+
+
+def test_the_decoder_moves_with_the_link_and_stays_without_it(runs, tmp_path):
+    before = decoder(runs[1])
+    linked = train_e2e(e2e_recipe(tmp_path, runs, "linked", device='"cpu"'), log=lambda *_: None)
+    control = train_e2e(e2e_recipe(tmp_path, runs, "control", link="false", device='"cpu"'), log=lambda *_: None)
+    moved, kept = decoder(linked / "shape"), decoder(control / "shape")
+    assert any(not torch.equal(moved[k], before[k]) for k in before)
+    assert all(torch.equal(kept[k], before[k]) for k in before)
+    records = [json.loads(line) for line in (linked / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in records] == [1, 2, 3, 4]
+    assert all(r["G"] > 0 and r["D"] > 0 and r["skipped_decoder_steps"] == 0 for r in records)
+    assert (linked / "images" / "step-00000004.png").exists()
+    from ngp_mi.pipeline import NGP  # the run is a maps run and a shape run for the rest of the tools
+
+    ngp = NGP(linked, linked / "shape")
+    assert ngp.shape_model is not None and ngp.maps is not None
+
+    # killed after step 2 and resumed: the same weights as straight through
+    train_e2e(e2e_recipe(tmp_path, runs, "resumed", iterations=2, device='"cpu"'), log=lambda *_: None)
+    messages = []
+    resumed = train_e2e(e2e_recipe(tmp_path, runs, "resumed", device='"cpu"'), log=messages.append)
+    assert any("resuming from" in m and "(step 2)" in m for m in messages)
+    again = decoder(resumed / "shape")
+    # Π_v's silhouette gradients sum with Dr.Jit's atomic scatter-adds, whose order varies between
+    # runs: equal up to float rounding, far below what the steps moved
+    moved_by = max(float((moved[k] - before[k]).abs().max()) for k in moved)
+    assert max(float((again[k] - moved[k]).abs().max()) for k in moved) < 1e-4 * moved_by
+
+
+def test_a_run_that_does_not_exist_is_named(runs, tmp_path):
+    with pytest.raises(ValueError, match="no readable checkpoint|no checkpoint|does not exist|not a directory"):
+        train_e2e(e2e_recipe(tmp_path, (tmp_path / "none", runs[1]), "bad"), log=lambda *_: None)
+
+
+def test_two_processes_with_gloo_stay_in_sync(runs, tmp_path):
+    cfg = e2e_recipe(tmp_path, runs, "ddp", iterations=2, device='"cpu"')
+    env = {**os.environ, "NGP_MI_THREADS": "1", "OMP_NUM_THREADS": "1"}
+    done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
+                           "29519", "-m", "ngp_mi.cli", "train", "e2e", "--config", str(cfg)],
+                          capture_output=True, text=True, timeout=600, env=env)
+    assert done.returncode == 0, done.stderr[-2000:]
+    records = [json.loads(line) for line in (tmp_path / "ddp" / "log.jsonl").read_text().splitlines()]
+    assert records[-1] == {"step": 2, "world": 2, "ranks_in_sync": True}
