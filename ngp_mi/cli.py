@@ -365,6 +365,10 @@ def fit_shape_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--shape-run", help="with --start zs: a `train shape` output folder")
     p.add_argument("--zs-steps", type=at_least(0), default=default(FitConfig, "zs_steps"),
                    help="steps of z_s before the vertices (default: %(default)s)")
+    p.add_argument("--fit-decoder", action="store_true",
+                   help="with --start zs: the decoder's weights move with z_s (phase (b))")
+    p.add_argument("--decoder-lr", type=float, default=default(FitConfig, "decoder_lr"),
+                   help="Adam's step for the decoder with --fit-decoder (default: %(default)s)")
     p.add_argument("--mask-weight", type=float, default=default(FitConfig, "mask_weight"), help="(default: %(default)s)")
     p.add_argument("--depth-weight", type=float, default=default(FitConfig, "depth_weight"),
                    help="0 fits masks only (default: %(default)s)")
@@ -383,7 +387,8 @@ def fit_shape(args: argparse.Namespace) -> int:
     config = FitConfig(targets=args.targets, shape_id=args.shape_id, held_out=args.held_out, steps=args.steps,
                        lr=args.lr, lam=args.lam, start=args.start, mask_weight=args.mask_weight,
                        depth_weight=args.depth_weight, silhouette=not args.no_silhouette, spp=args.spp,
-                       boundary_spp=args.boundary_spp, zs_steps=args.zs_steps, image_weight=args.image_weight)
+                       boundary_spp=args.boundary_spp, zs_steps=args.zs_steps, image_weight=args.image_weight,
+                       fit_decoder=args.fit_decoder, decoder_lr=args.decoder_lr)
     from ngp_mi.models.shape import ShapeModel
     from ngp_mi.pipeline import NGP
 

@@ -59,6 +59,8 @@ class FitConfig:
     zs_candidates: int = 8
     zs_steps: int = 60
     zs_lr: float = 5e-2
+    fit_decoder: bool = False  # phase (b): the decoder's weights move with z_s
+    decoder_lr: float = 1e-4
     extract_resolution: int = 48  # marching-cubes grid of G_shape's surface while z_s is fitted
     sphere_radius: float = 0.4
     sphere_subdivisions: int = 4
@@ -77,7 +79,9 @@ class FitConfig:
         for name in ("steps", "spp", "boundary_spp", "checkpoint_every", "frame_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
-        if not (self.lr > 0 and self.zda_lr > 0 and self.lam >= 0 and self.mask_weight >= 0 and self.depth_weight >= 0
+        if self.fit_decoder and self.start != "zs":
+            raise ValueError("--fit-decoder needs --start zs (the decoder is the shape prior's)")
+        if not (self.lr > 0 and self.zda_lr > 0 and self.decoder_lr > 0 and self.lam >= 0 and self.mask_weight >= 0 and self.depth_weight >= 0
                 and self.image_weight >= 0):
             raise ValueError("--lr must be > 0 and --lam, --mask-weight, --depth-weight, --image-weight >= 0")
         if self.mask_weight == 0 and self.depth_weight == 0:
@@ -203,8 +207,10 @@ def _step_losses(vertices: torch.Tensor, faces: np.ndarray, targets: Targets, fi
 
 
 def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitConfig,
-               log: Callable[[str], None]) -> tuple[TriangleMesh, dict[str, Any]]:
-    """Phase (a): the best of ``zs_candidates`` latents by mask loss, then z_s fitted through G_shape.
+               log: Callable[[str], None], image_term: ImageTerm | None = None) -> tuple[TriangleMesh, dict[str, Any]]:
+    """Phase (a): the best of ``zs_candidates`` latents by mask loss, then z_s fitted through G_shape
+    (with ``fit_decoder``, the decoder's weights too, at ``decoder_lr``: phase (b)); with an image
+    term, z_da moves beside them.
 
     A step whose latent gives an empty shape is undone and the step size halved (logged), so a fit
     never stops on a shape with nothing to project.
@@ -212,7 +218,10 @@ def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitCon
     from ngp_mi.pipeline import latent  # the one rule of seeded latents
 
     for p in shape_model.parameters():
-        p.requires_grad_(False)  # only z_s moves
+        p.requires_grad_(False)  # only z_s moves (and the decoder in phase (b))
+    decoder = list(shape_model.decoder.parameters()) if config.fit_decoder else []
+    for p in decoder:
+        p.requires_grad_(True)
     dim, cams = shape_model.config.z_dim, targets.cameras[fitted]
     scores = []
     for seed in range(config.zs_candidates):
@@ -228,31 +237,46 @@ def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitCon
     best_loss, best_seed = min(scores)
     log(f"fit-shape: start z_s of seed {best_seed} (mask loss {best_loss:.4f}, best of {len(scores)})")
     z = latent(best_seed, dim).clone().requires_grad_(True)
-    previous = z.detach().clone()
-    optimizer = torch.optim.Adam([z], lr=config.zs_lr)
+    moving = [z, *decoder, *([image_term.z_da] if image_term is not None else [])]
+    previous = [p.detach().clone() for p in moving]
+    groups = [{"params": [z], "lr": config.zs_lr}]
+    if decoder:
+        groups.append({"params": decoder, "lr": config.decoder_lr})
+    if image_term is not None:
+        groups.append({"params": [image_term.z_da], "lr": config.zda_lr})
+    optimizer = torch.optim.Adam(groups)
     history, halvings = [], 0
     for step in range(config.zs_steps):
         surface = shape_model.differentiable_surface(z, resolution=config.extract_resolution)
         if surface is None:  # this z_s has no surface: undo the last step, take half of it
-            z.data.copy_(previous)
+            for p, kept in zip(moving, previous):
+                p.data.copy_(kept)
             for group in optimizer.param_groups:
                 group["lr"] *= 0.5
             halvings += 1
             log(f"fit-shape: z_s step {step} gave an empty shape; undone, step size halved")
             continue
-        terms = _step_losses(*surface, targets, fitted, config, step)[1]
+        terms = _step_losses(*surface, targets, fitted, config, step, image_term)[1]
         optimizer.zero_grad(set_to_none=True)
         terms["total"].backward()
-        previous = z.detach().clone()
-        if torch.isfinite(z.grad).all():
+        previous = [p.detach().clone() for p in moving]
+        if all(p.grad is None or torch.isfinite(p.grad).all() for p in moving):
             optimizer.step()
+        else:
+            log(f"fit-shape: z_s step {step}: a non-finite gradient; skipped")
         history.append({"step": step + 1, **{k: float(v.detach()) for k, v in terms.items()}})
     extraction = shape_model.shape(z.detach(), resolution=config.extract_resolution)
     if extraction.mesh is None:
-        extraction = shape_model.shape(previous, resolution=config.extract_resolution)
+        for p, kept in zip(moving, previous):
+            p.data.copy_(kept)
+        extraction = shape_model.shape(z.detach(), resolution=config.extract_resolution)
+    for p in decoder:
+        p.requires_grad_(False)
     log(f"fit-shape: z_s fitted, mask loss {history[0]['mask']:.4f} → {history[-1]['mask']:.4f}" if history else
         "fit-shape: no z_s step")
-    return extraction.mesh, {"zs_seed": best_seed, "zs_history": history, "zs_halvings": halvings}
+    return extraction.mesh, {"zs_seed": best_seed, "zs_history": history, "zs_halvings": halvings,
+                             "decoder_fitted": bool(decoder),
+                             **({"z_da": image_term.z_da.detach()[0].tolist()} if image_term is not None else {})}
 
 
 def _start_mesh(config: FitConfig) -> TriangleMesh:
@@ -300,8 +324,10 @@ def fit_shape(config: FitConfig, out: str | Path, shape_model: Any = None, ngp: 
             kept = load_file(start_file)
             start = TriangleMesh(kept["vertices"].numpy(), kept["faces"].numpy(), name="G_shape(z_s)")
             latent_phase = json.loads((out / "state" / "latent.json").read_text())
+            if image_term is not None and "z_da" in latent_phase:  # the vertices start from phase (a)'s appearance
+                image_term.z_da.data.copy_(torch.tensor(latent_phase["z_da"])[None])
         else:
-            start, latent_phase = fit_latent(shape_model, targets, fitted, config, log)
+            start, latent_phase = fit_latent(shape_model, targets, fitted, config, log, image_term)
             with atomic_path(start_file) as tmp:
                 save_file({"vertices": torch.as_tensor(start.vertices, dtype=torch.float32).contiguous(),
                            "faces": torch.as_tensor(np.asarray(start.faces, np.int64)).contiguous()}, tmp)

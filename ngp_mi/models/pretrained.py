@@ -67,10 +67,23 @@ def _run_facts(run: Path) -> dict[str, Any]:
     log = run / "log.jsonl"
     if log.exists():
         times = [json.loads(line).get("time") for line in log.read_text().splitlines() if line.strip()]
-        times = [t for t in times if t is not None]
-        if times:
-            facts["training_seconds"] = round(float(max(times)), 1)
+        seconds = training_seconds([t for t in times if t is not None])
+        if seconds:
+            facts["training_seconds"] = round(seconds, 1)
+    for name in ("metrics.json", "eval/eval.json"):  # what `train shape` and `evaluate maps` measured
+        if (run / name).exists():
+            facts.setdefault("figures", {})[name] = json.loads((run / name).read_text())
     return facts
+
+
+def training_seconds(times: list[float]) -> float:
+    """Wall time of a run from its log's times, which restart from 0 in each resumed process: the
+    sum of each process's last time."""
+    total = 0.0
+    for previous, current in zip(times, times[1:] + [None]):
+        if current is None or current < previous:
+            total += previous
+    return total
 
 
 def export_model(out: str | Path, maps_run: str | Path, shape_run: str | Path | None = None, family: str = "",

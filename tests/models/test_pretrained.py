@@ -76,3 +76,14 @@ def test_export_model_command(exported, tmp_path, capsys):
     maps, specular, shape, card = load_model(tmp_path / "m")
     assert shape is None and specular is not None and card["shape"] is None
     assert len(NGP.pretrained(tmp_path / "m").maps.lights) == len(overhead_rig())
+
+
+def test_the_card_adds_up_resumed_training_time_and_carries_the_runs_measurements(exported, tmp_path):
+    from ngp_mi.models.pretrained import training_seconds
+
+    assert training_seconds([10.0, 20.0, 5.0, 15.0]) == 35.0  # killed at 20 s, resumed for 15 s more
+    assert training_seconds([]) == 0.0
+    _, maps_run, shape_run = exported
+    main(["export-model", "--maps-run", str(maps_run), "--shape-run", str(shape_run), "--out", str(tmp_path / "m")])
+    card = json.loads((tmp_path / "m" / "card.json").read_text())
+    assert card["shape"]["figures"]["metrics.json"] == json.loads((shape_run / "metrics.json").read_text())
