@@ -87,13 +87,15 @@ def demo_flags(p: argparse.ArgumentParser) -> None:
                                                    "(default: every shipped model)")
     p.add_argument("--frames", type=at_least(2), default=default(run_demo, "frames"),
                    help="frames of each orbit (default: %(default)s)")
+    p.add_argument("--fit-steps", type=at_least(1), default=default(run_demo, "fit_steps"),
+                   help="steps of the inverse-rendering fit (default: %(default)s)")
 
 
 def demo(args: argparse.Namespace) -> int:
     from ngp_mi.commands.demo import run_demo
 
     run_demo(args.out, models=args.model, resolution=args.res, views=args.views, spp=args.spp, seed=args.seed,
-             frames=args.frames)
+             frames=args.frames, fit_steps=args.fit_steps)
     return 0
 
 

@@ -1,6 +1,7 @@
 """What several test modules share: independent reference computations (no Mitsuba inside), a JIT probe,
 and random inputs of the shading operator with a backend-agreement check."""
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -116,6 +117,15 @@ def assert_backends_agree(mode="blinn_phong", view="per_pixel", **inputs):
             assert grads[name] is None or not grads[name].any()
             continue
         torch.testing.assert_close(grads[name], g, rtol=1e-5, atol=1e-5 * max(1.0, g.abs().max().item()), msg=name)
+
+
+def run_torchrun(stage, config, port, processes=2):
+    """``torchrun --nproc_per_node N -m ngp_mi.cli train STAGE --config CONFIG`` on CPUs (gloo), one
+    thread each; the completed process."""
+    env = {**os.environ, "NGP_MI_THREADS": "1", "OMP_NUM_THREADS": "1"}
+    return subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", str(processes),
+                           "--master_port", str(port), "-m", "ngp_mi.cli", "train", stage, "--config", str(config)],
+                          capture_output=True, text=True, timeout=600, env=env)
 
 
 def run_cli(*args):

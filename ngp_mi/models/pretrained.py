@@ -70,9 +70,11 @@ def _run_facts(run: Path) -> dict[str, Any]:
         seconds = training_seconds([t for t in times if t is not None])
         if seconds:
             facts["training_seconds"] = round(seconds, 1)
-    for name in ("metrics.json", "eval/eval.json"):  # what `train shape` and `evaluate maps` measured
+    # what `train shape`, `evaluate maps` and `compare --maps-checkpoint` (its per-method summary) measured
+    for name, part in (("metrics.json", None), ("eval/eval.json", None), ("compare/results.json", "summary")):
         if (run / name).exists():
-            facts.setdefault("figures", {})[name] = json.loads((run / name).read_text())
+            measured = json.loads((run / name).read_text())
+            facts.setdefault("figures", {})[name] = measured[part] if part else measured
     return facts
 
 

@@ -163,11 +163,15 @@ class ShapeModel(BaseModel):
         return (self.field(code)(points) > LEVEL).reshape((resolution,) * 3).cpu().numpy()
 
     @torch.no_grad()
-    def extract(self, code: torch.Tensor, resolution: int = 128, coarse: int = 32) -> Extraction:
+    def extract(self, code: torch.Tensor, resolution: int = 128, coarse: int | None = None) -> Extraction:
+        """Marching cubes of one code's field, coarse-to-fine: the coarse grid (default: the largest
+        of 32, 16, 8, … dividing ``resolution``) finds the cells the surface passes through."""
         self.decoder.eval()
+        if coarse is None:
+            coarse = next(c for c in (32, 16, 8, 4, 2, 1) if resolution % c == 0)
         return extract_mesh(self.field(code.detach()), resolution, LEVEL, coarse=coarse, inside_above=True)
 
-    def shape(self, z: torch.Tensor, resolution: int = 128, coarse: int = 32) -> Extraction:
+    def shape(self, z: torch.Tensor, resolution: int = 128, coarse: int | None = None) -> Extraction:
         """G_shape(z_s): the extracted mesh of one latent (z_dim,)."""
         self.G_latent.eval()
         with torch.no_grad():
@@ -175,7 +179,7 @@ class ShapeModel(BaseModel):
         return self.extract(code, resolution, coarse)
 
     def differentiable_surface(self, z: torch.Tensor, resolution: int = 64,
-                               coarse: int = 32) -> tuple[torch.Tensor, np.ndarray] | None:
+                               coarse: int | None = None) -> tuple[torch.Tensor, np.ndarray] | None:
         """Vertices (V, 3) of G_shape(z) differentiable w.r.t. z and the decoder / G_latent weights, and faces.
 
         None when the shape is empty. Values equal :meth:`shape`'s vertices.

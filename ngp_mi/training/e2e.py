@@ -105,8 +105,7 @@ def shape_depth_batch(shape: ShapeModel, batch: int, resolution: int, seed: int,
         if empty > 4 * batch:
             raise RuntimeError(f"train e2e: {empty} latents in a row gave an empty shape; G_shape has collapsed")
         z = torch.randn(shape.config.z_dim, generator=generator)
-        surface = shape.differentiable_surface(z, resolution=train.extract_resolution,
-                                               coarse=min(32, train.extract_resolution))
+        surface = shape.differentiable_surface(z, resolution=train.extract_resolution)
         if surface is None:
             empty += 1
             continue

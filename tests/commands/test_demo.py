@@ -10,8 +10,12 @@ from ngp_mi.commands.demo import run_demo
 
 
 def test_demo_writes_contact_sheets(tmp_path):
-    page = run_demo(tmp_path, models=[], resolution=32, views=3, spp=4, family_count=2, log=lambda *_: None)
+    page = run_demo(tmp_path, models=[], resolution=32, views=3, spp=4, family_count=2, fit_steps=12,
+                    log=lambda *_: None)
     assert "No NGP model is shipped" in page.read_text()
+    assert "Inverse rendering: a chair recovered from 8 views" in page.read_text()
+    fit = json.loads((tmp_path / "fit" / "run" / "fit.json").read_text())
+    assert fit["start"] == "sphere" and fit["chamfer_end"] < fit["chamfer_start"]
     image = np.asarray(Image.open(tmp_path / "views.png"))
     assert image.shape[0] > 32 and image.shape[1] > 4 * 32
     assert image.max() > 100  # something lit is in it
@@ -31,7 +35,7 @@ def test_families_command_writes_a_sheet(tmp_path):
 def test_the_demo_page_shows_ngp_under_every_handle_in_a_real_browser(tiny_model, tmp_path):
     messages = []
     page = run_demo(tmp_path, models=[str(tiny_model)], resolution=32, views=2, spp=2, family_count=2, frames=4,
-                    log=messages.append)
+                    fit_steps=3, log=messages.append)
     text = page.read_text()
     for section in ("camera orbit", "light orbit", "appearance and shape", "exemplar transfer",
                     "variants and intermediate maps", "Reference"):
@@ -39,7 +43,8 @@ def test_the_demo_page_shows_ngp_under_every_handle_in_a_real_browser(tiny_model
     assert "No NGP model is shipped" not in text
     assert any("images," in m and "/s)" in m for m in messages)  # progress: count and rate
     seen = open_in_chromium(page)
-    assert len(seen["images"]) == 9 + 3, seen["images"]  # 9 of NGP, 3 path-traced references
+    assert len(seen["images"]) == 9 + 3 + 3, seen["images"]  # 9 of NGP, 3 of the fit, 3 path-traced references
+    assert json.loads((tmp_path / "fit" / "run" / "fit.json").read_text())["start"] == "zs"  # the model's prior
     assert all(loaded for _, loaded in seen["images"]), [src for src, ok in seen["images"] if not ok]
     assert seen["errors"] == []
     assert {src.rsplit(".", 1)[1] for src, _ in seen["images"]} == {"png", "gif"}

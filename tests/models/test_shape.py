@@ -77,3 +77,13 @@ def test_a_depth_loss_reaches_z_and_the_decoder_through_mitsuba(tiny_run):
     assert torch.isfinite(z.grad).all() and z.grad.abs().sum() > 0
     grads = [p.grad for p in model.decoder.parameters()]
     assert all(g is not None and torch.isfinite(g).all() for g in grads) and sum(g.abs().sum() for g in grads) > 0
+
+
+def test_any_resolution_extracts_with_a_coarse_grid_that_divides_it(tiny_run):
+    """48³ (fit-shape's default) failed with the fixed 32³ coarse grid; the default now divides it."""
+    model = ShapeModel.from_run(tiny_run[0])
+    z = torch.randn(model.config.z_dim, generator=torch.Generator().manual_seed(0))
+    meshes = {r: model.shape(z, resolution=r).mesh for r in (24, 48, 64)}
+    assert all(m is not None and len(m.faces) > 0 for m in meshes.values())
+    surface = model.differentiable_surface(z, resolution=48)
+    assert surface is not None and np.allclose(surface[0].detach().numpy(), meshes[48].vertices, atol=1e-5)

@@ -2,14 +2,11 @@
 exact resume, and two processes with gloo."""
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
-from helpers import ROOT
+from helpers import ROOT, run_torchrun
 
 from ngp_mi.models.shape import ShapeModel
 from ngp_mi.training.e2e import E2ETrain, shape_depth_batch, train_e2e
@@ -84,10 +81,7 @@ def test_a_run_that_does_not_exist_is_named(runs, tmp_path):
 
 def test_two_processes_with_gloo_stay_in_sync(runs, tmp_path):
     cfg = e2e_recipe(tmp_path, runs, "ddp", iterations=2, device='"cpu"')
-    env = {**os.environ, "NGP_MI_THREADS": "1", "OMP_NUM_THREADS": "1"}
-    done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
-                           "29519", "-m", "ngp_mi.cli", "train", "e2e", "--config", str(cfg)],
-                          capture_output=True, text=True, timeout=600, env=env)
+    done = run_torchrun("e2e", cfg, 29519)
     assert done.returncode == 0, done.stderr[-2000:]
     records = [json.loads(line) for line in (tmp_path / "ddp" / "log.jsonl").read_text().splitlines()]
     assert records[-1] == {"step": 2, "world": 2, "ranks_in_sync": True}

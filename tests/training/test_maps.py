@@ -1,14 +1,11 @@
 """ngp-mi train maps: outputs, exact resume, checkpoint robustness, and 2-process training (gloo)."""
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
-from helpers import MAPS_TINY, maps_recipe
+from helpers import MAPS_TINY, maps_recipe, run_torchrun
 from safetensors.torch import load_file
 
 from ngp_mi.models.checkpoint import list_checkpoints
@@ -67,10 +64,7 @@ def test_config_errors_name_the_table_and_field(tmp_path):
 def test_two_processes_with_gloo_stay_in_sync(tmp_path):
     cfg = maps_recipe(tmp_path, "ddp", iterations=3, device='"cpu"')  # two CPU processes, gloo, on any machine
     train_maps(maps_recipe(tmp_path, "warm", iterations=1), log=lambda *_: None)  # render the data once
-    env = {**os.environ, "NGP_MI_THREADS": "1", "OMP_NUM_THREADS": "1"}
-    done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
-                           "29517", "-m", "ngp_mi.cli", "train", "maps", "--config", str(cfg)],
-                          capture_output=True, text=True, timeout=600, env=env)
+    done = run_torchrun("maps", cfg, 29517)
     assert done.returncode == 0, done.stderr[-2000:]
     records = [json.loads(line) for line in (tmp_path / "ddp" / "log.jsonl").read_text().splitlines()]
     assert records[-1] == {"step": 6, "world": 2, "ranks_in_sync": True}  # 3 map steps, 3 specular steps
