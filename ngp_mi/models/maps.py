@@ -55,6 +55,10 @@ class MapsConfig:
     # G_n predicts a correction to the normals of the input depth (finite differences, held fixed)
     # instead of the normals themselves; off in the paper's G_n. See :meth:`MapsModel.generate_normals`.
     normal_residual: bool = False
+    # How z_da enters G_da: "concat" (the paper's, BicycleGAN's) or "film" (per-channel modulation
+    # after each instance norm, which otherwise removes a concatenated constant code). See
+    # :class:`ngp_mi.nets.networks.ResnetGenerator`.
+    latent_mode: str = "concat"
     lambdas: tuple[tuple[str, float], ...] = tuple(losses.LAMBDAS.items())
 
     @property
@@ -98,7 +102,7 @@ class MapsModel(BaseModel):
             last = self.G_n.decoder[-2]
             nn.init.zeros_(last.weight)
             nn.init.zeros_(last.bias)
-        self.G_da = define_G(6, 3, c.ngf, c.blocks, latent_dim=c.latent_dim)
+        self.G_da = define_G(6, 3, c.ngf, c.blocks, latent_dim=c.latent_dim, latent_mode=c.latent_mode)
         self.G_depth = define_G(3, 1, c.ngf, c.blocks)
         self.E_da = define_E(3, c.latent_dim, c.nef)
         self.D_n = define_D(3, c.rf_maps, c.ndf)

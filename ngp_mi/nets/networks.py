@@ -2,7 +2,8 @@
 
 * :class:`ResnetGenerator` — the CycleGAN / MUNIT ResNet encoder-decoder used for every map
   generator (G_n, G_da, G_depth, G_sp^real), optionally conditioned on a latent code concatenated
-  to the input of every encoder layer (as VON / BicycleGAN do for G_da).
+  to the input of every encoder layer (as VON / BicycleGAN do for G_da) or modulating its
+  normalised features (:class:`FiLM`).
 * :class:`ResnetEncoder` — E_da: albedo map → (μ, log σ²) of the 8-d appearance code.
 * :class:`PatchDiscriminator` — PatchGAN with a receptive field of 16, 34, 70 or 142 pixels;
   :class:`MultiPatchDiscriminator` combines several (the paper's "mid (70) and large (140)").
@@ -45,23 +46,61 @@ def check_image_size(height: int, width: int, what: str = "input") -> None:
                              f"{SIZE_MULTIPLE} and at least {MIN_SIZE} (nearest: {nearest})")
 
 
+LATENT_MODES = ("concat", "film")
+
+
+class FiLM(nn.Module):
+    """Feature-wise modulation by a latent code: x · (1 + γ(z)) + β(z), per channel (Perez et al.
+    2018; MUNIT's AdaIN is the same after an instance norm). Placed after an instance norm it is the
+    one way a spatially constant code survives it."""
+
+    def __init__(self, latent_dim: int, channels: int):
+        super().__init__()
+        self.to_scale_shift = nn.Linear(latent_dim, 2 * channels)
+        self.reset_parameters()
+
+    def reset_parameters(self, std: float = 0.1) -> None:
+        """γ, β of a N(0, I) code start with a std of about 0.1 √latent_dim (0.28 for 8-d codes): the
+        code visibly changes the output from the first step (CycleGAN's N(0, 0.02) gives 0.06)."""
+        nn.init.normal_(self.to_scale_shift.weight, 0.0, std)
+        nn.init.zeros_(self.to_scale_shift.bias)
+
+    def forward(self, x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        scale, shift = self.to_scale_shift(z)[:, :, None, None].chunk(2, dim=1)
+        return x * (1 + scale) + shift
+
+
 class ResnetGenerator(nn.Module):
     """c7s1-ngf, two stride-2 downsamplings, ``blocks`` residual blocks, two upsamplings, c7s1-out, tanh.
 
-    With ``latent_dim > 0``, the latent code (broadcast over the image) is concatenated to the
-    input of each encoder layer (c7s1 and both downsamplings). Images are ``SIZE_MULTIPLE`` k
-    pixels on a side (:func:`check_image_size`).
+    With ``latent_dim > 0`` the generator is conditioned on a latent code, as ``latent_mode`` says:
+
+    * ``concat`` (the paper's G_da, BicycleGAN's "add to all"): the code, broadcast over the image,
+      is concatenated to the input of each encoder layer (c7s1 and both downsamplings). Each layer's
+      instance norm then subtracts the constant the code adds to every channel, so the code acts
+      only through the zero-padded borders (``tests/nets/test_networks.py`` measures it): G_da
+      largely ignores z_da (issue 15).
+    * ``film``: every instance norm of the encoder and the upsampling decoder is followed by a
+      :class:`FiLM` of the code, which the norm cannot undo.
+
+    Images are ``SIZE_MULTIPLE`` k pixels on a side (:func:`check_image_size`).
     """
 
-    def __init__(self, in_channels: int, out_channels: int, ngf: int = 64, blocks: int = 9, latent_dim: int = 0):
+    def __init__(self, in_channels: int, out_channels: int, ngf: int = 64, blocks: int = 9, latent_dim: int = 0,
+                 latent_mode: str = "concat"):
         super().__init__()
+        if latent_mode not in LATENT_MODES:
+            raise ValueError(f"latent_mode must be one of {LATENT_MODES}, got {latent_mode!r}")
         self.latent_dim = latent_dim
-        z = latent_dim
+        self.latent_mode = latent_mode if latent_dim else "concat"
+        z = latent_dim if self.latent_mode == "concat" else 0
         self.encoder = nn.ModuleList([
             nn.Sequential(nn.ReflectionPad2d(3), nn.Conv2d(in_channels + z, ngf, 7), _norm(ngf), nn.ReLU(True)),
             nn.Sequential(nn.Conv2d(ngf + z, 2 * ngf, 3, 2, 1), _norm(2 * ngf), nn.ReLU(True)),
             nn.Sequential(nn.Conv2d(2 * ngf + z, 4 * ngf, 3, 2, 1), _norm(4 * ngf), nn.ReLU(True)),
         ])
+        if self.latent_mode == "film":  # after the norms of the 3 encoder and the 2 upsampling layers
+            self.film = nn.ModuleList([FiLM(latent_dim, c) for c in (ngf, 2 * ngf, 4 * ngf, 2 * ngf, ngf)])
         self.blocks = nn.Sequential(*[ResnetBlock(4 * ngf) for _ in range(blocks)])
         self.decoder = nn.Sequential(
             nn.ConvTranspose2d(4 * ngf, 2 * ngf, 3, 2, 1, output_padding=1), _norm(2 * ngf), nn.ReLU(True),
@@ -73,11 +112,27 @@ class ResnetGenerator(nn.Module):
             raise ValueError(f"generator expects a latent code of size {self.latent_dim}" if self.latent_dim
                              else "generator takes no latent code")
         check_image_size(*x.shape[-2:])
+        if self.latent_mode == "film":
+            return self._forward_film(x, z)
         for layer in self.encoder:
             if z is not None:
                 x = torch.cat([x, z[:, :, None, None].expand(-1, -1, *x.shape[-2:])], dim=1)
             x = layer(x)
         return self.decoder(self.blocks(x))
+
+    def _forward_film(self, x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        films = iter(self.film)
+        for layer in self.encoder:  # each: [pad,] conv, norm, ReLU — modulated between norm and ReLU
+            *conv_norm, relu = layer
+            for module in conv_norm:
+                x = module(x)
+            x = relu(next(films)(x, z))
+        x = self.blocks(x)
+        for module in self.decoder:
+            x = module(x)
+            if isinstance(module, nn.InstanceNorm2d):
+                x = next(films)(x, z)
+        return x
 
 
 class ResnetEncoder(nn.Module):
@@ -174,8 +229,13 @@ def init_weights(net: nn.Module, gain: float = 0.02) -> nn.Module:
     return net
 
 
-def define_G(in_channels: int, out_channels: int, ngf: int = 64, blocks: int = 9, latent_dim: int = 0) -> ResnetGenerator:
-    return init_weights(ResnetGenerator(in_channels, out_channels, ngf, blocks, latent_dim))
+def define_G(in_channels: int, out_channels: int, ngf: int = 64, blocks: int = 9, latent_dim: int = 0,
+             latent_mode: str = "concat") -> ResnetGenerator:
+    net = init_weights(ResnetGenerator(in_channels, out_channels, ngf, blocks, latent_dim, latent_mode))
+    for module in net.modules():
+        if isinstance(module, FiLM):
+            module.reset_parameters()
+    return net
 
 
 def define_E(in_channels: int, latent_dim: int = 8, nef: int = 64, levels: int = 4) -> ResnetEncoder:

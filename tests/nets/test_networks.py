@@ -58,3 +58,25 @@ def test_multi_discriminator_and_size_check():
     assert len(scores) == 2 and scores[0].shape[-1] > scores[1].shape[-1]
     with pytest.raises(ValueError, match="at least 48x48"):
         define_D(3, (142,), ndf=8)(torch.randn(1, 3, 32, 32))
+
+
+def _interior_spread(mode: str) -> tuple[float, float]:
+    """Std over 6 latent codes of a random-weight generator's output, averaged over the interior of
+    a 256² image (64 px from every border), and the output's std over pixels."""
+    torch.manual_seed(0)
+    G = define_G(6, 3, 16, 2, latent_dim=8, latent_mode=mode).eval()
+    x = torch.randn(1, 6, 256, 256)
+    with torch.no_grad():
+        outs = torch.cat([G(x, torch.randn(1, 8)) for _ in range(6)])
+    return float(outs[..., 64:-64, 64:-64].std(0).mean()), float(outs.std())
+
+
+def test_a_concatenated_code_is_removed_by_the_instance_norms_and_film_keeps_it():
+    """Issue 15's "G_da ignores z_da": a constant code concatenated before conv → instance norm adds
+    a per-channel constant the norm subtracts, so only the zero-padded borders see it."""
+    concat, concat_std = _interior_spread("concat")
+    film, film_std = _interior_spread("film")
+    assert concat < 0.05 * concat_std  # away from the borders the code changes next to nothing
+    assert film > 10 * concat and film > 0.2 * film_std
+    with pytest.raises(ValueError, match="latent_mode must be one of"):
+        define_G(6, 3, 8, 1, latent_dim=8, latent_mode="add")
