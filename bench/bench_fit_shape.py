@@ -1,12 +1,17 @@
-"""Benchmark: `fit-shape` from a sphere — masks + depths vs masks only vs interior-only gradients (issue 17).
+"""Benchmark: `fit-shape` — from a sphere (masks + depths, masks only, interior-only gradients) and,
+with ``--model``, from the model's shape prior (issue 17).
 
-Targets: ``--shapes`` procedural chairs, 8 fitted + 4 held-out views each at ``--res``² (depth and
-mask, rendered by Mitsuba). Start: an icosphere of radius 0.4 (2,562 vertices), I + 20 L, Adam
-lr 3e-2, ``--steps`` steps. Per setting: Chamfer-L2 to the true chair (4,096 samples each way),
-mask IoU on the held-out views, seconds per step; the convergence curves side by side in
-``--out``/curves.png.
+Targets: ``--shapes`` procedural chairs, 8 fitted + 4 held-out views each at ``--res``² (depth, mask
+and, with ``--model``, a 64-spp path-traced image under the rig, rendered by Mitsuba). Sphere start:
+an icosphere of radius 0.4 (2,562 vertices), I + 20 L, Adam lr 3e-2, ``--steps`` steps. Prior
+start: the best of 8 latents by mask loss, z_s fitted for 60 steps ((a)), then the vertices ((c)),
+from masks only or from masks and images through the model's networks (z_da fitted too). Per
+setting: Chamfer-L2 to the true chair (4,096 samples each way), mask IoU and image PSNR / FLIP on
+the held-out views, seconds per step; the convergence curves side by side in ``--out``/curves.png;
+with ``--model``, the split of one image-term step (Π_v, networks, shading, backward, optimiser).
 
-    .venv/bin/python bench/bench_fit_shape.py [--shapes 3] [--res 128] [--steps 150] [--out outputs/bench/fit]
+    .venv/bin/python bench/bench_fit_shape.py [--shapes 3] [--res 128] [--steps 150] [--model chair]
+                                              [--only a,b] [--out outputs/bench/fit]
 """
 
 from __future__ import annotations
@@ -23,10 +28,15 @@ import torch
 from ngp_mi.commands.fit_shape import FitConfig, fit_shape
 from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
 
-SETTINGS = {  # name → FitConfig fields
-    "masks + depths, silhouette gradients": {},
-    "masks only, silhouette gradients": {"depth_weight": 0.0},
-    "masks + depths, interior gradients only (fast Π_v)": {"silhouette": False},
+SETTINGS = {  # name → FitConfig fields (and whether the model's networks are in the loop)
+    "masks + depths, silhouette gradients": ({}, False),
+    "masks only, silhouette gradients": ({"depth_weight": 0.0}, False),
+    "masks + depths, interior gradients only (fast Π_v)": ({"silhouette": False}, False),
+}
+PRIOR_SETTINGS = {
+    "(a) prior: z_s only, masks + depths": ({"start": "zs", "steps": 0, "image_weight": 0.0}, False),
+    "(c) prior then vertices, masks only": ({"start": "zs", "depth_weight": 0.0, "image_weight": 0.0}, False),
+    "(c) prior then vertices, masks + images (networks in the loop)": ({"start": "zs", "depth_weight": 0.0}, True),
 }
 
 
@@ -35,36 +45,115 @@ def main() -> None:
     parser.add_argument("--shapes", type=int, default=3)
     parser.add_argument("--res", type=int, default=128)
     parser.add_argument("--steps", type=int, default=150)
+    parser.add_argument("--model", help="a shipped model or model folder: adds the fits from its shape prior")
+    parser.add_argument("--only", default="", help="comma-separated indices of the settings to run (default: all)")
     parser.add_argument("--out", default="outputs/bench/fit")
     args = parser.parse_args()
     out = Path(args.out)
-    targets = out / "targets"
+    targets = out / ("targets-real" if args.model else "targets")
     render_dataset(DatasetConfig(source="chair", num_shapes=args.shapes, views=12, resolution=args.res,
-                                 channels=("depth", "mask"), seed=11), targets, progress=False)
+                                 channels=("depth", "mask"), seed=11, real_spp=64 if args.model else 0), targets,
+                   progress=False)
+    ngp = None
+    settings = dict(SETTINGS)
+    if args.model:
+        from ngp_mi.pipeline import NGP
+
+        ngp = NGP.pretrained(args.model)
+        settings.update(PRIOR_SETTINGS)
+    chosen = {int(i) for i in args.only.split(",") if i.strip()} or set(range(len(settings)))
     rows, curves = [], {}
-    for name, fields in SETTINGS.items():
+    for index, (name, (fields, networks)) in enumerate(settings.items()):
+        if index not in chosen:
+            continue
         results = []
         for k in range(args.shapes):
-            config = FitConfig(str(targets), shape_id=f"chair/{11 + k:06d}", held_out=4, steps=args.steps,
-                               checkpoint_every=args.steps, **fields)
-            folder = out / f"{list(SETTINGS).index(name)}-{k}"
+            config = FitConfig(str(targets), shape_id=f"chair/{11 + k:06d}", held_out=4,
+                               **{"steps": args.steps, "checkpoint_every": max(1, args.steps), **fields})
+            folder = out / f"{index}-{k}"
             start = time.perf_counter()
-            summary = fit_shape(config, folder, log=lambda *_: None)
-            summary["seconds_per_step"] = (time.perf_counter() - start) / args.steps
+            summary = fit_shape(config, folder, ngp.shape_model if ngp else None, ngp if networks else None,
+                                log=lambda *_: None)
+            steps = config.steps + (config.zs_steps if config.start == "zs" else 0)
+            summary["seconds_per_step"] = (time.perf_counter() - start) / steps
             results.append(summary)
-            if k == 0:
+            if k == 0 and config.steps:
                 curves[name] = json.loads((folder / "state" / "state.json").read_text())["history"]
-        rows.append((name, [r["chamfer_start"] for r in results], [r["chamfer_end"] for r in results],
-                     [r["mask_iou_held_out"] for r in results], [r["seconds_per_step"] for r in results]))
+        rows.append((name, results))
     _plot(curves, out / "curves.png")
     print(f"# bench_fit_shape — {time.strftime('%Y-%m-%d')}, {platform.machine()}, torch {torch.__version__} "
           f"({torch.get_num_threads()} threads); {args.shapes} chairs, 8 + 4 held-out views at {args.res}², "
-          f"{args.steps} steps\n")
-    print("| setting | Chamfer-L2 start | Chamfer-L2 end (per chair) | held-out mask IoU | s / step |\n|---|---|---|---|---|")
-    for name, start, end, iou, seconds in rows:
-        print(f"| {name} | {statistics.mean(start):.4f} | {', '.join(f'{e:.4f}' for e in end)} "
-              f"(mean {statistics.mean(end):.4f}) | {statistics.mean(iou):.3f} | {statistics.median(seconds):.3f} |")
+          f"{args.steps} vertex steps{f', model {args.model}' if args.model else ''}\n")
+    print("| setting | Chamfer-L2 start | Chamfer-L2 end (per chair) | held-out mask IoU | held-out PSNR / FLIP "
+          "start → end | s / step |\n|---|---|---|---|---|---|")
+    for name, results in rows:
+        mean = lambda key: statistics.mean(r[key] for r in results)  # noqa: E731
+        image = (f"{mean('psnr_held_out_start'):.2f} / {mean('flip_held_out_start'):.3f} → "
+                 f"{mean('psnr_held_out_end'):.2f} / {mean('flip_held_out_end'):.3f}"
+                 if "psnr_held_out_end" in results[0] else "–")
+        ends = ", ".join(f"{r['chamfer_end']:.4f}" for r in results)
+        print(f"| {name} | {mean('chamfer_start'):.4f} | {ends} "
+              f"(mean {mean('chamfer_end'):.4f}) | {mean('mask_iou_held_out'):.3f} | {image} | "
+              f"{statistics.median(r['seconds_per_step'] for r in results):.3f} |")
     print(f"\ncurves: {out / 'curves.png'}")
+    if ngp is not None:
+        print("\n" + step_split(ngp, targets))
+
+
+def step_split(ngp, targets: Path, repeats: int = 5) -> str:
+    """Median seconds of the parts of one image-term step of the vertex phase (8 views), as a table."""
+    import numpy as np
+
+    from ngp_mi.commands.fit_shape import ImageTerm, fit_losses, load_targets
+    from ngp_mi.geometry.families import generate
+    from ngp_mi.render.depth import depth_of_hits, project_depth
+
+    data = load_targets(targets, "chair/000011")
+    cams, fitted = data.cameras[:8], slice(0, 8)
+    mesh = generate("chair", 11).mesh()
+    term = ImageTerm(ngp, "ngp" if ngp.specular is not None else "no_sp",
+                     torch.zeros(1, ngp.maps.config.latent_dim, requires_grad=True))
+    for module in (ngp.maps, ngp.specular):
+        if module is not None:
+            module.requires_grad_(False)
+    vertices = torch.as_tensor(mesh.vertices, dtype=torch.float32).requires_grad_(True)
+    optimizer = torch.optim.Adam([vertices, term.z_da], lr=1e-3)
+    parts: dict[str, list[float]] = {}
+
+    def timed(name, fn):
+        began = time.perf_counter()
+        value = fn()
+        parts.setdefault(name, []).append(time.perf_counter() - began)
+        return value
+
+    from ngp_mi.pipeline import generate_albedo, generate_normals, realistic_specular, shade_maps
+
+    bounds = np.stack([mesh.vertices.min(0), mesh.vertices.max(0)])
+    for _ in range(repeats + 1):
+        maps = timed("Π_v forward (silhouette, spp 8 / 2)", lambda: project_depth(vertices, mesh.faces, cams,
+                                                                                 silhouette_grad=True))
+        hits, coverage = depth_of_hits(maps.depth, maps.mask), maps.mask
+        images = []
+        for i, camera in enumerate(cams):
+            d, c = hits[i:i + 1], coverage[i:i + 1]
+            normal = timed("G_n forward", lambda: generate_normals(ngp.maps, d, c, camera))
+            albedo = timed("G_da forward", lambda: generate_albedo(ngp.maps, d, c, camera, bounds, normal, term.z_da))
+            image = timed("R_diff forward (Dr.Jit)", lambda: shade_maps(normal, albedo, c, d, camera, data.lights[i],
+                                                                      "ngp", ngp.maps.config.constants))
+            if term.variant == "ngp":
+                image = image + timed("G_sp^real forward", lambda: realistic_specular(ngp.maps, ngp.specular, normal,
+                                                                                    albedo, c, camera))
+            images.append(image)
+        terms = fit_losses(maps.mask, maps.depth, data.mask[fitted], data.depth[fitted], 1.0, 0.0,
+                           torch.cat(images), data.images[fitted], 1.0)
+        optimizer.zero_grad()
+        timed("backward (networks, shading, Π_v)", lambda: terms["total"].backward())
+        timed("optimiser", optimizer.step)
+    rows = [(name, statistics.median(times[1:])) for name, times in parts.items()]  # the first is a warm-up
+    total = sum(seconds for _, seconds in rows)
+    return ("| part of one step (8 views) | median s | share |\n|---|---|---|\n"
+            + "\n".join(f"| {name} | {seconds:.3f} | {seconds / total:.0%} |" for name, seconds in rows)
+            + f"\n| total | {total:.3f} | |")
 
 
 def _plot(curves: dict[str, list[dict[str, float]]], path: Path) -> None:

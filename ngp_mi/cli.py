@@ -354,7 +354,8 @@ def fit_shape_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="output folder (a killed fit resumes from it)")
     p.add_argument("--held-out", type=at_least(0), default=default(FitConfig, "held_out"),
                    help="the last K views are scored, not fitted (default: %(default)s)")
-    p.add_argument("--steps", type=at_least(1), default=default(FitConfig, "steps"), help="(default: %(default)s)")
+    p.add_argument("--steps", type=at_least(0), default=default(FitConfig, "steps"),
+                   help="vertex steps; 0 with --start zs stops after the latent phase (default: %(default)s)")
     p.add_argument("--lr", type=float, default=default(FitConfig, "lr"), help="Adam's step (default: %(default)s)")
     p.add_argument("--lam", type=float, default=default(FitConfig, "lam"),
                    help="λ of the preconditioner I + λL (default: %(default)s)")
@@ -401,7 +402,8 @@ def fit_shape(args: argparse.Namespace) -> int:
         shape_model = ShapeModel.from_run(args.shape_run) if args.shape_run else (
             ngp.shape_model if ngp is not None and ngp.shape_model is not None else NGP.pretrained("chair").shape_model)
     summary = fit_shape(config, args.out, shape_model, ngp)
-    print(f"fit-shape: loss {summary['loss_start']:.5f} -> {summary['loss_end']:.5f}, mask IoU "
+    loss = f"loss {summary['loss_start']:.5f} -> {summary['loss_end']:.5f}, " if summary["loss_end"] is not None else ""
+    print(f"fit-shape: {loss}mask IoU "
           f"{summary['mask_iou_fitted']:.3f}" + (f", Chamfer-L2 {summary['chamfer_start']:.5f} -> "
                                                  f"{summary['chamfer_end']:.5f}" if summary["chamfer_end"] else ""))
     return 0

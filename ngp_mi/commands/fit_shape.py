@@ -76,9 +76,11 @@ class FitConfig:
     retries: int = 3  # undone steps in a row (step size halved each time) before a fit gives up
 
     def __post_init__(self) -> None:
-        for name in ("steps", "spp", "boundary_spp", "checkpoint_every", "frame_every"):
+        for name in ("spp", "boundary_spp", "checkpoint_every", "frame_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
+        if self.steps < (0 if self.start == "zs" else 1):
+            raise ValueError(f"--steps must be >= 1 (0 only with --start zs: the latent phase alone), got {self.steps}")
         if self.fit_decoder and self.start != "zs":
             raise ValueError("--fit-decoder needs --start zs (the decoder is the shape prior's)")
         if not (self.lr > 0 and self.zda_lr > 0 and self.decoder_lr > 0 and self.lam >= 0 and self.mask_weight >= 0 and self.depth_weight >= 0
@@ -451,14 +453,17 @@ def _finish(config: FitConfig, out: Path, targets: Targets, param: LargeSteps, u
     truth = _source_mesh(targets.record)
     summary = {"config": dataclasses.asdict(config), "shape_id": targets.record["shape_id"], "views": n,
                "fitted_views": fitted, "steps": len(history) and history[-1]["step"],
-               "loss_start": history[0]["total"] if history else None, "loss_end": history[-1]["total"],
+               "loss_start": history[0]["total"] if history else None,
+               "loss_end": history[-1]["total"] if history else None,
                "mask_iou_start": float(np.mean([_iou(before[i, 0], targets.mask[i, 0]) for i in range(fitted)])),
                "mask_iou_fitted": float(np.mean(ious[:fitted])),
                "mask_iou_held_out": float(np.mean(ious[fitted:])) if config.held_out else None,
                "chamfer_start": _chamfer(start, truth) if truth is not None else None,
                "chamfer_end": _chamfer(mesh, truth) if truth is not None else None,
                "start": config.start, **{k: v for k, v in latent_phase.items() if k != "zs_history"}}
-    _plot(history, out / "curves.png")
+    latent_steps = latent_phase.get("zs_history", [])  # the z_s phase first, then the vertices
+    _plot(latent_steps + [{**h, "step": h["step"] + len(latent_steps)} for h in history], out / "curves.png",
+          len(latent_steps))
     rows = [[_overlay(maps.mask[i, 0], targets.mask[i, 0]), depth_to_uint8(targets.depth[i, 0], targets.mask[i, 0]),
              depth_to_uint8(maps.depth[i, 0], maps.mask[i, 0])] for i in range(n)]
     columns = ["mask: target / fit / both", "target depth", "fitted depth"]
@@ -483,11 +488,13 @@ def _finish(config: FitConfig, out: Path, targets: Targets, param: LargeSteps, u
     chamfer = (f"Chamfer-L2 to the true shape {summary['chamfer_start']:.5f} → {summary['chamfer_end']:.5f}; "
                if truth is not None else "")
     write_text(out / "report.md", f"# fit-shape: {summary['shape_id']}\n\n{fitted} of {n} views fitted, "
-               f"{summary['steps']} steps; loss {summary['loss_start']:.5f} → {summary['loss_end']:.5f}; {chamfer}"
+               f"{summary['steps']} vertex steps"
+               + (f"; loss {summary['loss_start']:.5f} → {summary['loss_end']:.5f}" if history else "") + f"; {chamfer}"
                f"mask IoU {summary['mask_iou_fitted']:.3f} on the fitted views"
                + (f", {summary['mask_iou_held_out']:.3f} on the held-out ones" if config.held_out else "")
                + (_image_sentence(summary) if image_term is not None else "")
-               + ".\n\n![curves](curves.png)\n\n![target and fit per view](sheet.png)\n\n![progress](progress.gif)\n")
+               + ".\n\n![curves](curves.png)\n\n![target and fit per view](sheet.png)\n"
+               + ("\n![progress](progress.gif)\n" if frames else ""))
     log(f"fit-shape: wrote {out / 'fit.obj'}, {out / 'report.md'}")
     return summary
 
@@ -523,7 +530,7 @@ def _write_obj(path: Path, mesh: TriangleMesh) -> None:
         trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(tmp, file_type="obj")
 
 
-def _plot(history: list[dict[str, float]], path: Path) -> None:
+def _plot(history: list[dict[str, float]], path: Path, latent_steps: int = 0) -> None:
     import matplotlib  # only the curves need it
 
     matplotlib.use("Agg")
@@ -531,8 +538,10 @@ def _plot(history: list[dict[str, float]], path: Path) -> None:
 
     steps = [h["step"] for h in history]
     fig, ax = plt.subplots(figsize=(6, 3.5))
-    for name in [k for k in ("total", "mask", "depth", "image") if history and k in history[0]]:
-        ax.semilogy(steps, [max(h[name], 1e-12) for h in history], label=name)
+    for name in [k for k in ("total", "mask", "depth", "image") if any(k in h for h in history)]:
+        ax.semilogy(steps, [max(h[name], 1e-12) if name in h else float("nan") for h in history], label=name)
+    if latent_steps:
+        ax.axvline(latent_steps + 0.5, color="grey", linestyle=":", label="z_s | vertices")
     ax.set_xlabel("step")
     ax.set_ylabel("loss")
     ax.legend()

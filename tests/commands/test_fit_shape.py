@@ -342,3 +342,14 @@ def test_phase_b_moves_the_decoder_and_phase_a_fits_z_da_from_images(chair_image
     assert all("image" in h for h in latent["zs_history"]) and any(abs(x) > 0 for x in latent["z_da"])
     with pytest.raises(ValueError, match="--fit-decoder needs --start zs"):
         FitConfig(str(chair_images), fit_decoder=True)
+
+
+def test_zero_vertex_steps_stop_after_the_latent_phase(chair_views, tiny_run, tmp_path):
+    from ngp_mi.models.shape import ShapeModel
+
+    config = FitConfig(str(chair_views), start="zs", zs_candidates=2, zs_steps=3, steps=0, extract_resolution=32)
+    summary = fit_shape(config, tmp_path, ShapeModel.from_run(tiny_run[0]), log=lambda *_: None)
+    assert summary["steps"] == 0 and summary["loss_end"] is None and np.isfinite(summary["chamfer_end"])
+    assert (tmp_path / "curves.png").stat().st_size > 0 and "progress.gif" not in (tmp_path / "report.md").read_text()
+    with pytest.raises(ValueError, match="--steps must be >= 1"):
+        FitConfig(str(chair_views), steps=0)
