@@ -59,7 +59,15 @@ class MapsConfig:
     # after each instance norm, which otherwise removes a concatenated constant code). See
     # :class:`ngp_mi.nets.networks.ResnetGenerator`.
     latent_mode: str = "concat"
+    # Which NOC the albedo cycle conditions G_da on: "generated" (the paper's: NOC of G_depth's depth
+    # of the real maps' diffuse image, a blob while G_depth is young) or "real" (NOC of the real maps'
+    # own depth: BicycleGAN's conditional-VAE path, a usable geometry from the first step).
+    albedo_cycle_noc: str = "generated"
     lambdas: tuple[tuple[str, float], ...] = tuple(losses.LAMBDAS.items())
+
+    def __post_init__(self) -> None:
+        if self.albedo_cycle_noc not in ("generated", "real"):
+            raise ValueError(f"albedo_cycle_noc must be 'generated' or 'real', got {self.albedo_cycle_noc!r}")
 
     @property
     def constants(self) -> Constants:
@@ -186,13 +194,15 @@ class MapsModel(BaseModel):
         normal_cycled = self.generate_normals(depth_g_net, cams_m)
         mu, logvar = self.E_da(albedo_r_net)
         z_encoded = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
-        albedo_cycled_net = self.G_da(torch.cat([noc_g, normal_r], 1), z_encoded)
+        noc_real = self.noc(maps_batch["depth"], m_m, maps_batch)
+        noc_for_albedo = noc_real if self.config.albedo_cycle_noc == "real" else noc_g
+        albedo_cycled_net = self.G_da(torch.cat([noc_for_albedo, normal_r], 1), z_encoded)
         diffuse_cycled = self.render_diffuse(normal_cycled, (albedo_cycled_net + 1) / 2, m_m, cams_m)
 
         self._for_d = {"normal": (normal_r, normal_g), "albedo": (albedo_r_net, albedo_g_net),
                        "diffuse": (diffuse_r_net, diffuse_g_net),
                        "depth": (depth_to_net(maps_batch["depth"], m_m), depth_g_net),
-                       "noc": (self.noc(maps_batch["depth"], m_m, maps_batch), noc_g)}
+                       "noc": (noc_real, noc_g)}
         self.visuals = {"depth_r": d_r_net, "normal_g": normal_g, "albedo_g": albedo_g_net, "diffuse_g": diffuse_g_net,
                         "depth_cycled": depth_cycled_net, "diffuse_r": diffuse_r_net, "depth_g": depth_g_net,
                         "normal_cycled": normal_cycled, "albedo_cycled": albedo_cycled_net}

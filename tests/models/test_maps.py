@@ -59,3 +59,20 @@ def test_residual_normal_training_is_finite_and_moves_the_correction(loaders):
     history = [model.optimize(depth, maps) for depth, maps in zip(*loaders)]
     assert all(math.isfinite(v) for step in history for v in step.values())
     assert model.G_n.decoder[-2].weight.abs().sum() > 0  # the zero-initialised correction has started to learn
+
+
+@pytest.mark.parametrize("albedo_cycle_noc", ["generated", "real"])
+def test_the_albedo_cycle_reads_the_noc_the_recipe_names(loaders, albedo_cycle_noc):
+    """With "real" the albedo cycle no longer depends on G_depth (the paper's form reads the NOC of
+    its depth); with "film" the code reaches G_da's output."""
+    torch.manual_seed(3)
+    model = MapsModel(dataclasses.replace(TINY, albedo_cycle_noc=albedo_cycle_noc, latent_mode="film"))
+    depth, maps = next(zip(*loaders))
+    terms = model(depth, maps)
+    model.zero_grad()
+    terms["cyc_da"].backward()
+    grad = sum(float(p.grad.abs().sum()) for p in model.G_depth.parameters() if p.grad is not None)
+    assert (grad == 0) == (albedo_cycle_noc == "real")
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.G_da.film.parameters())
+    with pytest.raises(ValueError, match="albedo_cycle_noc must be"):
+        dataclasses.replace(TINY, albedo_cycle_noc="true")
