@@ -1,12 +1,14 @@
 """Benchmark: NGP latency per handle (issue 16) — what a user waits for after each change of an NGPScene.
 
-Models of the shipped size (the ``cpu`` recipes' architectures: maps ngf 24 / 4 blocks, G_sp^real
-ngf 24 / 4 blocks), weights from ``--maps-run`` when given, else random (the time of a forward pass
-does not depend on the weights). Shapes are procedural chairs given as meshes, so "new shape" times
-Π_v and everything after it; G_shape's extraction is timed by ``bench_extract.py``.
+The shipped ``chair`` model (``--model``), or a ``--maps-run``, or random models of the shipped size
+(the ``cpu`` recipes' architectures: maps ngf 24 / 4 blocks, G_sp^real ngf 24 / 4 blocks; the time
+of a forward pass does not depend on the weights). Shapes are procedural chairs given as meshes, so
+"new shape" times Π_v and everything after it; with a shape prior, "new z_s" adds G_shape's
+extraction (marching cubes at 64³).
 
 For each resolution, the median of ``--repeats`` calls of
 
+* **new z_s** (a model with a shape prior): another latent, then ``render()``;
 * **new shape**: another mesh, then ``render()`` (Π_v, G_n, G_da, G_sp^real, shading, blend);
 * **new view**: another camera (the same stages; the mesh's Mitsuba scene is kept);
 * **new appearance**: another z_da (G_da, G_sp^real, shading, blend);
@@ -35,6 +37,7 @@ from ngp_mi.geometry.families import generate
 from ngp_mi.lights import DirectionalLight
 from ngp_mi.models.base import config_from_dict
 from ngp_mi.models.maps import MapsConfig, MapsModel
+from ngp_mi.models.pretrained import available
 from ngp_mi.models.specular import SpecularConfig, SpecularModel
 from ngp_mi.camera import Camera
 from ngp_mi.commands.view import ViewerState, pose_of
@@ -67,21 +70,29 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--res", default="128,256")
     parser.add_argument("--repeats", type=int, default=15)
-    parser.add_argument("--maps-run", help="a `train maps` run (default: random weights of the cpu recipe's size)")
+    parser.add_argument("--model", default="chair" if "chair" in available() else None,
+                        help="a shipped model or model folder (default: chair when shipped)")
+    parser.add_argument("--maps-run", help="a `train maps` run instead (neither: random weights of the cpu "
+                                           "recipe's size)")
     parser.add_argument("--variant", default="ngp")
     args = parser.parse_args()
-    ngp = NGP(args.maps_run) if args.maps_run else shipped_size_models()
+    ngp = (NGP(args.maps_run) if args.maps_run else NGP.pretrained(args.model) if args.model else
+           shipped_size_models())
+    weights = (f"weights of {args.maps_run}" if args.maps_run else f"model {args.model}" if args.model else
+               "random weights, cpu-recipe size")
     meshes = [generate("chair", s).mesh() for s in range(args.repeats + 1)]
     rows = []
     for res in (int(r) for r in args.res.split(",")):
-        scene = NGPScene(ngp, res, args.variant).set_shape(mesh=meshes[0])
-        scene.render()
+        scene = NGPScene(ngp, res, args.variant)
+        new_latent = (median_ms(lambda k: scene.set_shape(seed=k).render(), args.repeats)
+                      if ngp.shape_model is not None else float("nan"))
+        scene.set_shape(mesh=meshes[0]).render()
         new_shape = median_ms(lambda k: scene.set_shape(mesh=meshes[k]).render(), args.repeats)
         new_view = median_ms(lambda k: scene.set_camera(theta=10, phi=-40.0 + 5 * k).render(), args.repeats)
         new_look = median_ms(lambda k: scene.set_appearance(seed=100 + k).render(), args.repeats)
         new_light = median_ms(lambda k: scene.set_lights([DirectionalLight((0.1 * k, 1.0, 1.0), (2.0, 2.0, 2.0))])
                               .render(), args.repeats)
-        rows.append((res, new_shape, new_view, new_look, new_light))
+        rows.append((res, new_latent, new_shape, new_view, new_look, new_light))
     viewer_rows = []
     for res in (int(r) for r in args.res.split(",")):  # `ngp-mi view`: the same plus the page's uint8 image
         state = ViewerState(ngp, res, mesh=meshes[0])
@@ -95,9 +106,10 @@ def main() -> None:
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"# bench_pipeline — {time.strftime('%Y-%m-%d')}, {platform.machine()}, torch {torch.__version__} "
           f"({torch.get_num_threads()} threads), {backend.load().variant}; variant {args.variant}; "
-          f"{'weights of ' + args.maps_run if args.maps_run else 'random weights, cpu-recipe size'}; "
+          f"{weights}; "
           f"median of {args.repeats} calls\n")
-    print("| resolution | new shape (mesh) ms | new view ms | new appearance ms | light change ms |\n|---|---|---|---|---|")
+    print("| resolution | new z_s ms | new shape (mesh) ms | new view ms | new appearance ms | light change ms |\n"
+          "|---|---|---|---|---|---|")
     for res, *ms in rows:
         print(f"| {res}² | " + " | ".join(f"{m:.1f}" for m in ms) + " |")
     print("\n`ngp-mi view` (ViewerState: the render and the page's uint8 image)\n")
