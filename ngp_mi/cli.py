@@ -349,7 +349,8 @@ def generate(args: argparse.Namespace) -> int:
 def fit_shape_flags(p: argparse.ArgumentParser) -> None:
     from ngp_mi.commands.fit_shape import FitConfig
 
-    p.add_argument("--targets", required=True, help="a render-dataset folder (masks and depths with their cameras)")
+    p.add_argument("--targets", required=True, help="a render-dataset folder (masks and depths with their cameras), or "
+                                                    "a folder of your own images with a cameras.json (README)")
     p.add_argument("--shape-id", help="which shape of it (default: the first)")
     p.add_argument("--out", required=True, help="output folder (a killed fit resumes from it)")
     p.add_argument("--held-out", type=at_least(0), default=default(FitConfig, "held_out"),

@@ -94,14 +94,81 @@ class FitConfig:
 class Targets:
     cameras: list[Camera]
     mask: torch.Tensor  # (N, 1, H, W)
-    depth: torch.Tensor  # (N, 1, H, W), 0 off the mask
+    depth: torch.Tensor | None  # (N, 1, H, W), 0 off the mask; None: no depth targets (the user's images)
     record: dict[str, Any]  # the first view's manifest record
     images: torch.Tensor | None = None  # (N, 3, H, W) path-traced, linear radiance (render-dataset --real-spp)
     lights: list[list[Light]] | None = None  # each image's lights
 
 
+CAMERAS_FILE = "cameras.json"
+
+
+def load_user_targets(root: str | Path) -> Targets:
+    """A user's own views: ``ROOT/cameras.json`` lists ``{"views": [{"image": FILE, "K": 3×3, "E":
+    3×4 or 4×4 (OpenCV, world → camera), "mask": FILE (optional: else the image's alpha channel),
+    "lights": [...] (optional: else the overhead rig)}]}``. Images (PNG / JPEG in sRGB, or EXR in
+    linear radiance) share one size; there are no depth targets. Errors name the file, view and field."""
+    from PIL import Image
+
+    from ngp_mi.data.datasets import read_image
+    from ngp_mi.lights import overhead_rig
+
+    root = Path(root)
+    path = root / CAMERAS_FILE
+    try:
+        views = json.loads(path.read_text())["views"]
+    except (OSError, json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: cannot read the views ({type(exc).__name__}: {exc}); expected "
+                         '{"views": [{"image": ..., "K": ..., "E": ...}, ...]}') from None
+    if not isinstance(views, list) or not views:
+        raise ValueError(f"{path}: 'views' must be a non-empty list")
+    cameras, masks, images, lights = [], [], [], []
+    for k, view in enumerate(views):
+        where = f"{path}: view {k}"
+        if not isinstance(view, dict) or "image" not in view:
+            raise ValueError(f"{where}: needs an 'image' file")
+        where = f"{path}: view {k} ({view['image']})"
+        for field in ("K", "E"):
+            if field not in view:
+                raise ValueError(f"{where}: no camera field {field!r}")
+        image_path = root / view["image"]
+        image = read_image(image_path, linear=True)
+        height, width = image.shape[:2]
+        if images and image.shape != images[0].shape:
+            raise ValueError(f"{where}: {width}x{height}, the first view is {images[0].shape[1]}x{images[0].shape[0]}")
+        E = np.asarray(view["E"], dtype=np.float64)
+        try:
+            camera = Camera.from_K_E(np.asarray(view["K"], dtype=np.float64), E[:3] if E.shape == (4, 4) else E,
+                                     width, height)
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"{where}: inconsistent camera ({exc})") from None
+        if not (0 <= camera.cx <= width and 0 <= camera.cy <= height):
+            raise ValueError(f"{where}: the principal point ({camera.cx}, {camera.cy}) lies outside the "
+                             f"{width}x{height} image")
+        if "mask" in view:
+            mask = np.asarray(Image.open(root / view["mask"]).convert("L"), np.float32) / 255.0
+        else:
+            with Image.open(image_path) as im:
+                if "A" not in im.getbands():
+                    raise ValueError(f"{where}: no mask — give a 'mask' file or an image with an alpha channel")
+                mask = np.asarray(im.getchannel("A"), np.float32) / 255.0
+        if mask.shape != (height, width):
+            raise ValueError(f"{where}: the mask is {mask.shape[1]}x{mask.shape[0]}, the image {width}x{height}")
+        cameras.append(camera)
+        masks.append((mask > 0.5).astype(np.float32))
+        images.append(image * masks[-1][..., None])
+        lights.append([light_from_dict(light, f"{where}, light {j}") for j, light in enumerate(view["lights"])]
+                      if "lights" in view else overhead_rig())
+    mask_tensor = torch.from_numpy(np.stack(masks)[:, None])
+    return Targets(cameras, mask_tensor, None, {"shape_id": root.name, "source": "user"},
+                   torch.from_numpy(np.stack(images).transpose(0, 3, 1, 2).copy()), lights)
+
+
 def load_targets(root: str | Path, shape_id: str | None = None) -> Targets:
-    """The views of one shape of a render-dataset folder; errors name the folder, shape or file."""
+    """The views of one shape of a render-dataset folder, or a folder of the user's own views with a
+    ``cameras.json`` (:func:`load_user_targets`); errors name the folder, shape or file."""
+    if (Path(root) / CAMERAS_FILE).exists():
+        return load_user_targets(root)
     records = load_manifest(root)
     shape_id = shape_id or records[0]["shape_id"]
     mine = [r for r in records if r["shape_id"] == shape_id]
@@ -137,13 +204,15 @@ def load_targets(root: str | Path, shape_id: str | None = None) -> Targets:
                    lights if with_images else None)
 
 
-def fit_losses(coverage: torch.Tensor, depth: torch.Tensor, target_mask: torch.Tensor, target_depth: torch.Tensor,
+def fit_losses(coverage: torch.Tensor, depth: torch.Tensor, target_mask: torch.Tensor,
+               target_depth: torch.Tensor | None,
                mask_weight: float, depth_weight: float, image: torch.Tensor | None = None,
                target_image: torch.Tensor | None = None, image_weight: float = 0.0) -> dict[str, torch.Tensor]:
     """The fit's named loss terms (module docstring) and their weighted sum ``total``; with ``image``,
     also the image term mean |I − I_target| in linear radiance."""
     terms = {"mask": (coverage - target_mask).square().mean(),
-             "depth": (target_mask * (depth - coverage * target_depth)).square().mean()}
+             "depth": (target_mask * (depth - coverage * target_depth)).square().mean() if target_depth is not None
+             else depth.new_zeros(())}  # no depth targets (the user's own images)
     terms["total"] = mask_weight * terms["mask"] + depth_weight * terms["depth"]
     if image is not None:
         terms["image"] = (image - target_image).abs().mean()
@@ -204,7 +273,8 @@ def _step_losses(vertices: torch.Tensor, faces: np.ndarray, targets: Targets, fi
         image = fit_images(image_term, maps.depth, maps.mask, targets.cameras[fitted],
                            np.stack([corners.min(0), corners.max(0)]), targets.lights[fitted])
         target_image = targets.images[fitted]
-    return maps, fit_losses(maps.mask, maps.depth, targets.mask[fitted], targets.depth[fitted], config.mask_weight,
+    target_depth = targets.depth[fitted] if targets.depth is not None else None
+    return maps, fit_losses(maps.mask, maps.depth, targets.mask[fitted], target_depth, config.mask_weight,
                             config.depth_weight, image, target_image, config.image_weight)
 
 
@@ -313,6 +383,8 @@ def fit_shape(config: FitConfig, out: str | Path, shape_model: Any = None, ngp: 
     out = Path(out)
     targets = load_targets(config.targets, config.shape_id)
     image_term = _image_term(config, targets, ngp, log)
+    if targets.depth is None and config.depth_weight:
+        log("fit-shape: the targets have no depths (the user's own images): the depth term is off")
     n = len(targets.cameras)
     if not 0 <= config.held_out < n:
         raise ValueError(f"--held-out {config.held_out}: the shape has {n} views; keep at least one to fit")
@@ -464,7 +536,8 @@ def _finish(config: FitConfig, out: Path, targets: Targets, param: LargeSteps, u
     latent_steps = latent_phase.get("zs_history", [])  # the z_s phase first, then the vertices
     _plot(latent_steps + [{**h, "step": h["step"] + len(latent_steps)} for h in history], out / "curves.png",
           len(latent_steps))
-    rows = [[_overlay(maps.mask[i, 0], targets.mask[i, 0]), depth_to_uint8(targets.depth[i, 0], targets.mask[i, 0]),
+    target_depth = targets.depth if targets.depth is not None else torch.zeros_like(targets.mask)
+    rows = [[_overlay(maps.mask[i, 0], targets.mask[i, 0]), depth_to_uint8(target_depth[i, 0], targets.mask[i, 0]),
              depth_to_uint8(maps.depth[i, 0], maps.mask[i, 0])] for i in range(n)]
     columns = ["mask: target / fit / both", "target depth", "fitted depth"]
     if image_term is not None:

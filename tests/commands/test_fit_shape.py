@@ -353,3 +353,58 @@ def test_zero_vertex_steps_stop_after_the_latent_phase(chair_views, tiny_run, tm
     assert (tmp_path / "curves.png").stat().st_size > 0 and "progress.gif" not in (tmp_path / "report.md").read_text()
     with pytest.raises(ValueError, match="--steps must be >= 1"):
         FitConfig(str(chair_views), steps=0)
+
+
+def _user_folder(chair_images, folder, edit=lambda k, view: view):
+    """The render-dataset views as a user would bring them: sRGB PNGs with the mask as alpha, and a
+    cameras.json of K and E."""
+    from PIL import Image
+
+    from ngp_mi.data.exr import read_exr
+    from ngp_mi.data.manifest import load_manifest
+    from ngp_mi.viz import to_uint8
+
+    folder.mkdir()
+    views = []
+    for k, record in enumerate(load_manifest(chair_images)):
+        rgb = read_exr(chair_images / record["files"]["real"], ["rgb"])["rgb"]
+        mask = read_exr(chair_images / record["files"]["maps"], ["mask"])["mask"]
+        rgba = np.concatenate([to_uint8(rgb), (mask[..., None] > 0.5).astype(np.uint8) * 255], -1)
+        Image.fromarray(rgba, "RGBA").save(folder / f"view{k}.png")
+        views.append(edit(k, {"image": f"view{k}.png", "K": record["K"], "E": record["E"]}))
+    (folder / "cameras.json").write_text(json.dumps({"views": views}))
+    return folder
+
+
+def test_the_users_own_images_with_a_cameras_file_are_fitted(chair_images, tiny_ngp, tmp_path):
+    folder = _user_folder(chair_images, tmp_path / "mine")
+    targets = load_targets(folder)
+    assert targets.depth is None and targets.images.shape == (4, 3, 32, 32) and len(targets.lights[0]) == 4
+    messages = []
+    summary = fit_shape(FitConfig(str(folder), held_out=1, steps=4, sphere_subdivisions=2), tmp_path / "fit",
+                        ngp=tiny_ngp, log=messages.append)
+    assert any("the depth term is off" in m for m in messages) and summary["chamfer_end"] is None
+    history = json.loads((tmp_path / "fit" / "state" / "state.json").read_text())["history"]
+    assert all(h["depth"] == 0 and np.isfinite(h["image"]) for h in history)
+    assert history[-1]["total"] < history[0]["total"]
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda k, v: {key: x for key, x in v.items() if key != "K"} if k == 2 else v, r"view 2 \(view2.png\): no camera field 'K'"),
+    (lambda k, v: {**v, "K": [[40, 0, 16], [0, 30, 16], [0, 0, 1]]} if k == 1 else v, "inconsistent camera.*fx == fy"),
+    (lambda k, v: {**v, "K": [[40, 0, 90], [0, 40, 16], [0, 0, 1]]} if k == 0 else v, "principal point .* outside"),
+    (lambda k, v: {**v, "mask": "nothing.png"} if k == 3 else v, "nothing.png"),
+])
+def test_a_bad_cameras_file_is_named(chair_images, tmp_path, edit, message):
+    folder = _user_folder(chair_images, tmp_path / "bad", edit)
+    with pytest.raises((ValueError, OSError), match=message):
+        load_targets(folder)
+
+
+def test_an_image_without_a_mask_is_named(chair_images, tmp_path):
+    from PIL import Image
+
+    folder = _user_folder(chair_images, tmp_path / "rgb")
+    Image.open(folder / "view1.png").convert("RGB").save(folder / "view1.png")
+    with pytest.raises(ValueError, match=r"view 1 \(view1.png\): no mask"):
+        load_targets(folder)
