@@ -32,6 +32,8 @@ SETTINGS = {  # name → FitConfig fields (and whether the model's networks are 
     "masks + depths, silhouette gradients": ({}, False),
     "masks only, silhouette gradients": ({"depth_weight": 0.0}, False),
     "masks + depths, interior gradients only (fast Π_v)": ({"silhouette": False}, False),
+    "masks + depths, boundary spp 1": ({"boundary_spp": 1}, False),
+    "masks + depths, boundary spp 8": ({"boundary_spp": 8}, False),
 }
 PRIOR_SETTINGS = {
     "(a) prior: z_s only, masks + depths": ({"start": "zs", "steps": 0, "image_weight": 0.0}, False),

@@ -13,7 +13,7 @@ with Adam. Each step projects it into every fitted view with silhouette gradient
 m and d the target mask and depth of each view (:func:`fit_losses`). The depth term only looks
 where the target has the object: the fit's depth over the target's background would pull the surface
 towards the camera (to depth 0), which the mask term avoids by shrinking the coverage instead. Views past ``--held-out`` are
-kept out of the fit and scored after it (mask IoU). Outputs: ``fit.obj``, ``curves.png``,
+kept out of the fit and scored after it (mask IoU). Outputs: ``fit.obj`` (or ``.ply``), ``curves.png``,
 ``sheet.png`` (target against fit, per view), ``progress.gif`` (the fitted silhouette over the
 steps), ``fit.json`` and ``report.md``; with the shape's source known (a procedural family or a
 mesh file), the Chamfer-L2 to it at the start and at the end. A killed fit resumes from its last
@@ -71,6 +71,7 @@ class FitConfig:
     silhouette: bool = True  # silhouette gradients (else the fast Π_v: interior gradients only)
     spp: int = 8
     boundary_spp: int = 2
+    mesh_format: str = "obj"  # of the fitted mesh: obj or ply
     checkpoint_every: int = 25
     frame_every: int = 10
     retries: int = 3  # undone steps in a row (step size halved each time) before a fit gives up
@@ -81,6 +82,8 @@ class FitConfig:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
         if self.steps < (0 if self.start == "zs" else 1):
             raise ValueError(f"--steps must be >= 1 (0 only with --start zs: the latent phase alone), got {self.steps}")
+        if self.mesh_format not in ("obj", "ply"):
+            raise ValueError(f"--format must be obj or ply, got {self.mesh_format!r}")
         if self.fit_decoder and self.start != "zs":
             raise ValueError("--fit-decoder needs --start zs (the decoder is the shape prior's)")
         if not (self.lr > 0 and self.zda_lr > 0 and self.decoder_lr > 0 and self.lam >= 0 and self.mask_weight >= 0 and self.depth_weight >= 0
@@ -519,7 +522,7 @@ def _finish(config: FitConfig, out: Path, targets: Targets, param: LargeSteps, u
         start_maps = project_depth(start_vertices, faces, targets.cameras)
         before = start_maps.mask
     mesh = TriangleMesh(vertices.numpy(), faces, name="fit")
-    _write_obj(out / "fit.obj", mesh)
+    _write_mesh(out / f"fit.{config.mesh_format}", mesh)
     n, fitted = len(targets.cameras), len(targets.cameras) - config.held_out
     ious = [_iou(maps.mask[i, 0], targets.mask[i, 0]) for i in range(n)]
     truth = _source_mesh(targets.record)
@@ -568,7 +571,7 @@ def _finish(config: FitConfig, out: Path, targets: Targets, param: LargeSteps, u
                + (_image_sentence(summary) if image_term is not None else "")
                + ".\n\n![curves](curves.png)\n\n![target and fit per view](sheet.png)\n"
                + ("\n![progress](progress.gif)\n" if frames else ""))
-    log(f"fit-shape: wrote {out / 'fit.obj'}, {out / 'report.md'}")
+    log(f"fit-shape: wrote {out / f'fit.{config.mesh_format}'}, {out / 'report.md'}")
     return summary
 
 
@@ -594,13 +597,13 @@ def _image_sentence(summary: dict[str, Any]) -> str:
             f"{summary[f'flip_{part}_start']:.3f} → {summary[f'flip_{part}_end']:.3f}")
 
 
-def _write_obj(path: Path, mesh: TriangleMesh) -> None:
+def _write_mesh(path: Path, mesh: TriangleMesh) -> None:
     import trimesh
 
     if not np.isfinite(mesh.vertices).all():
         raise RuntimeError(f"fit-shape: refusing to write {path}: the mesh has non-finite vertices")
     with atomic_path(path) as tmp:
-        trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(tmp, file_type="obj")
+        trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(tmp, file_type=path.suffix[1:])
 
 
 def _plot(history: list[dict[str, float]], path: Path, latent_steps: int = 0) -> None:

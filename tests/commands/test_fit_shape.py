@@ -408,3 +408,11 @@ def test_an_image_without_a_mask_is_named(chair_images, tmp_path):
     Image.open(folder / "view1.png").convert("RGB").save(folder / "view1.png")
     with pytest.raises(ValueError, match=r"view 1 \(view1.png\): no mask"):
         load_targets(folder)
+
+
+def test_the_command_line_fit_writes_a_ply(chair_views, tmp_path):
+    from ngp_mi.cli import main
+
+    assert main(["fit-shape", "--targets", str(chair_views), "--out", str(tmp_path / "f"), "--steps", "3",
+                 "--format", "ply"]) == 0
+    assert len(trimesh.load(tmp_path / "f" / "fit.ply", force="mesh").faces) > 0
