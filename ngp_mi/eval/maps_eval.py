@@ -5,8 +5,12 @@
   next to normals computed from the same coarse depth (the paper's "NGP w/o G_n"). Until the shape
   autoencoder exists, the coarse depth is the ground-truth depth smoothed by a masked Gaussian
   (``coarse_sigma`` pixels), which removes detail the way a coarse reconstruction does.
-* **Albedo.** Exemplar fidelity: ``G_da(NOC(d), N, μ(E_da(I_da)))`` against ``I_da`` (masked L1);
-  diversity: mean pairwise L1 between G_da outputs for different z_da ~ N(0, I).
+* **Albedo.** Exemplar fidelity: ``G_da(NOC(d), N, μ(E_da(I_da)))`` against ``I_da`` (masked L1),
+  beside the best single colour per view (the per-channel median on the object: what an albedo
+  without parts would score); diversity: mean pairwise L1 between G_da outputs for different
+  z_da ~ N(0, I) of one view, and the appearance-diversity ratio — the spread (std over images,
+  averaged over RGB) of the mean on-object colour of G_da's samples ÷ the same over the real
+  albedo maps (1: the samples vary as much as the real objects do).
 """
 
 from __future__ import annotations
@@ -51,6 +55,22 @@ def smooth_depth(depth: torch.Tensor, mask: torch.Tensor, sigma: float) -> torch
     return torch.where(mask > 0, blur(depth * mask) / weight.clamp_min(1e-8), torch.zeros_like(depth))
 
 
+def mean_colour(albedo: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """(N, 3): each image's mean colour on the object."""
+    return (albedo * mask).sum((2, 3)) / mask.sum((2, 3)).clamp_min(1)
+
+
+def single_colour_l1(albedo: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Per-pixel L1 (flattened over the objects' pixels) of the best single colour of each view —
+    the per-channel median of its object, which minimises L1 — against the albedo."""
+    errors = []
+    for image, m in zip(albedo, mask[:, 0] > 0):
+        if m.any():
+            pixels = image[:, m]  # (3, P)
+            errors.append((pixels - pixels.median(1, keepdim=True).values).abs().mean(0))
+    return torch.cat(errors) if errors else torch.zeros(0)
+
+
 @torch.no_grad()
 def evaluate_maps(run: str | Path, data: str | Path, out: str | Path, coarse_sigma: float = 2.0,
                   latent_samples: int = 4, batch_size: int = 8, seed: int = 0,
@@ -66,7 +86,8 @@ def evaluate_maps(run: str | Path, data: str | Path, out: str | Path, coarse_sig
     model = MapsModel.from_run(run)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    errors_gn, errors_depth, fidelity, diversity, overlap = [], [], [], [], []
+    errors_gn, errors_depth, fidelity, flat, diversity, overlap = [], [], [], [], [], []
+    sample_colours, real_colours = [], []
     coarse_set = ReflectanceMapDataset(coarse_data, channels=("depth", "mask")) if coarse_data else None
     coarse_index = {(r["shape_id"], r["view"]): i for i, r in enumerate(coarse_set.records)} if coarse_set else {}
     sheet = None
@@ -95,7 +116,10 @@ def evaluate_maps(run: str | Path, data: str | Path, out: str | Path, coarse_sig
         mu, _ = model.E_da(2 * batch["albedo"] - 1)
         reconstruction = (model.G_da(condition, mu) + 1) / 2
         fidelity.append(((reconstruction - batch["albedo"]).abs().mean(1)[mask[:, 0] > 0]))
+        flat.append(single_colour_l1(batch["albedo"], mask))
         samples = [(model.G_da(condition, torch.randn_like(mu)) + 1) / 2 for _ in range(latent_samples)]
+        real_colours.append(mean_colour(batch["albedo"], mask))
+        sample_colours += [mean_colour(sample, mask) for sample in samples]
         pairs = [(a - b).abs().mean(1)[mask[:, 0] > 0].mean() for i, a in enumerate(samples) for b in samples[i + 1:]]
         diversity.append(torch.stack(pairs).mean())
         if sheet is None:
@@ -113,6 +137,9 @@ def evaluate_maps(run: str | Path, data: str | Path, out: str | Path, coarse_sig
                              "from_coarse_depth": {"mean": from_depth.mean().item(), "median": from_depth.median().item()}},
         "albedo_reconstruction_l1": torch.cat(fidelity).mean().item(),
         "albedo_diversity_l1": torch.stack(diversity).mean().item(),
+        "albedo_single_colour_l1": torch.cat(flat).mean().item(),
+        "appearance_diversity_ratio": (torch.cat(sample_colours).std(0).mean()
+                                       / torch.cat(real_colours).std(0).mean().clamp_min(1e-8)).item(),
     }
     write_json(out / "eval.json", result)
     n = result["normal_error_deg"]
@@ -124,8 +151,10 @@ def evaluate_maps(run: str | Path, data: str | Path, out: str | Path, coarse_sig
         f"\n\n| normals from the coarse depth | mean error ° | median ° |\n"
         f"|---|---|---|\n| G_n (NGP) | {n['G_n']['mean']:.2f} | {n['G_n']['median']:.2f} |\n"
         f"| finite differences (NGP w/o G_n) | {n['from_coarse_depth']['mean']:.2f} | {n['from_coarse_depth']['median']:.2f} |\n\n"
-        f"Albedo: E_da → G_da reconstruction L1 {result['albedo_reconstruction_l1']:.4f}; spread over z_da "
-        f"(mean pairwise L1 of {latent_samples} samples) {result['albedo_diversity_l1']:.4f}.\n\n![maps](eval.png)\n")
+        f"Albedo: E_da → G_da reconstruction L1 {result['albedo_reconstruction_l1']:.4f} (the best single colour "
+        f"per view: {result['albedo_single_colour_l1']:.4f}); spread over z_da (mean pairwise L1 of {latent_samples} "
+        f"samples) {result['albedo_diversity_l1']:.4f}; appearance-diversity ratio "
+        f"{result['appearance_diversity_ratio']:.3f}.\n\n![maps](eval.png)\n")
     if sheet is not None:
         save_png(out / "eval.png", sheet)
     return result

@@ -46,6 +46,7 @@ def test_evaluation_runs_and_reports_both_normal_methods(trained, tmp_path):
     for method in ("G_n", "from_coarse_depth"):
         assert 0 <= errors[method]["median"] <= 180 and math.isfinite(errors[method]["mean"])
     assert result["albedo_reconstruction_l1"] > 0 and result["albedo_diversity_l1"] >= 0
+    assert 0 < result["albedo_single_colour_l1"] < 1 and result["appearance_diversity_ratio"] > 0
     assert (tmp_path / "eval.md").read_text().count("|") > 10 and (tmp_path / "eval.png").exists()
     # Smoothing removes detail: the baseline from the sharp depth is better. (At 32 px the parts are
     # a few pixels wide, so even the sharp depth's finite differences are off by ~20 deg; 0.01 deg at 128 px.)
@@ -86,3 +87,16 @@ def test_residual_normals_start_from_the_depth_normals():
     inside = mask[0, 0] > 0
     assert torch.allclose(got[0][:, inside], expected[0][:, inside], atol=2e-3)
     assert (got[0][:, ~inside] == 0).all()
+
+
+def test_the_albedo_baselines_are_what_they_say():
+    from ngp_mi.eval.maps_eval import mean_colour, single_colour_l1
+
+    mask = torch.zeros(2, 1, 4, 4)
+    mask[:, :, 1:3, 1:3] = 1
+    albedo = torch.zeros(2, 3, 4, 4)
+    albedo[0, :, 1:3, 1:3] = 0.5  # one flat colour: the single colour is exact
+    albedo[1, 0, 1:3, 1:3] = torch.tensor([[0.0, 1.0], [1.0, 1.0]])  # red 0 / 1: the median 1 is off by 1 on 1 of 4
+    errors = single_colour_l1(albedo, mask)
+    assert errors.shape == (8,) and float(errors[:4].max()) == 0 and float(errors[4:].sum()) == pytest.approx(1 / 3)
+    torch.testing.assert_close(mean_colour(albedo, mask)[1], torch.tensor([0.75, 0.0, 0.0]))
