@@ -37,7 +37,7 @@ wait "$maps"
   --real-spp 64 --quiet
 "$bin" evaluate maps --run "$runs/maps_$family" --data "$held_out" --coarse-sigma 2
 "$bin" compare --source "$family" --out "$runs/maps_$family/compare" --num-shapes 3 --views 2 --res 64 \
-  --seed 500 --maps-checkpoint "$runs/maps_$family"
+  --seed 500 --lights rig --maps-checkpoint "$runs/maps_$family"
 "$bin" export-model --maps-run "$runs/maps_$family" --shape-run "$runs/shape_$family" \
   --out "ngp_mi/pretrained/$family" --family "$family" \
   --notes "scripts/ship-model.sh $family $map_steps $specular_steps on $(nproc) CPU cores, $(date -u +%F)"

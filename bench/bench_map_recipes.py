@@ -1,0 +1,92 @@
+"""Experiment: map-network recipes at an equal budget (issue 15) — one table, one row per arm.
+
+Each arm trains ``train/maps_cpu.toml`` cut to ``--iterations`` map steps and ``--specular`` G_sp^real
+steps, with the arm's ``--set`` overrides (the first arm is usually the paper-faithful recipe), then
+measures on held-out chairs (``--held-out``: a ``render-dataset`` folder, e.g. seeds 500–519 × 4
+views at 64²):
+
+* ``evaluate maps`` (coarse depth: the truth smoothed by σ = 2 px): G_n's and the coarse depth's own
+  normal error, the exemplar reconstruction L1 beside the best single colour per view, the spread
+  over z_da, the appearance-diversity ratio;
+* ``compare --maps-checkpoint`` on 3 held-out chairs × 2 views under the rig: sRGB PSNR / FLIP on
+  the object of NGP without and with G_sp^real against a 1024-spp path-traced reference.
+
+Arms run one after the other and resume (a killed experiment continues where it stopped); the table
+is printed at the end (Markdown, for bench/RESULTS.md).
+
+    .venv/bin/python bench/bench_map_recipes.py --held-out outputs/data/held_out_chairs \\
+        --arm "paper-faithful (cpu recipe)=" \\
+        --arm "FiLM z_da=model.latent_mode=film" \\
+        --arm "FiLM + real-NOC albedo cycle=model.latent_mode=film,model.albedo_cycle_noc=real" \\
+        [--iterations 1500 --specular 400 --seed 0 --out outputs/bench/recipes]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import torch
+
+from ngp_mi.eval.compare import CompareConfig, run_compare
+from ngp_mi.eval.maps_eval import evaluate_maps
+from ngp_mi.training.maps import train_maps
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_arm(name: str, overrides: list[str], args: argparse.Namespace, out: Path) -> dict:
+    folder = out / name.replace(" ", "_").replace("/", "-")
+    began = time.perf_counter()
+    run = train_maps(ROOT / "train" / "maps_cpu.toml", log=lambda *_: None, out=folder / "run",
+                     overrides=[f"train.iterations={args.iterations}", f"specular.iterations={args.specular}",
+                                f"train.seed={args.seed}", "train.checkpoint_every=250", *overrides])
+    minutes = (time.perf_counter() - began) / 60
+    maps = evaluate_maps(run, args.held_out, folder / "eval", coarse_sigma=2.0)
+    summary = run_compare(CompareConfig(num_shapes=3, views=2, resolution=64, light_setups=("rig",),
+                                        seed=500, maps_checkpoint=str(run)), folder / "compare", log=lambda *_: None)
+    by_method = {row["method"]: row for row in summary}
+    images = {label: by_method[method] for label, method in (
+        ("without G_sp", "NGP w/o G_sp^real: R_diff on generated maps"), ("NGP", "NGP: R_diff ⊕ G_sp^real"))
+        if method in by_method}
+    return {"arm": name, "overrides": overrides, "train_minutes": minutes, "maps": maps,
+            "images": {k: {"psnr": v["psnr_srgb_masked"], "flip": v["flip_masked"]} for k, v in images.items()}}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--held-out", required=True, help="a render-dataset folder of held-out shapes")
+    parser.add_argument("--arm", action="append", required=True, metavar="NAME=KEY=VALUE,…",
+                        help="an arm: its name and its --set overrides (none: the recipe as it is)")
+    parser.add_argument("--iterations", type=int, default=1500)
+    parser.add_argument("--specular", type=int, default=400)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default="outputs/bench/recipes")
+    args = parser.parse_args()
+    out = Path(args.out)
+    results = []
+    for arm in args.arm:
+        name, _, overrides = arm.partition("=")
+        result = run_arm(name, [o for o in overrides.split(",") if o], args, out)
+        (out / "results.json").parent.mkdir(parents=True, exist_ok=True)
+        results.append(result)
+        (out / "results.json").write_text(json.dumps(results, indent=2))
+    print(f"# bench_map_recipes — {time.strftime('%Y-%m-%d')}, {platform.machine()}, torch {torch.__version__} "
+          f"({torch.get_num_threads()} threads); train/maps_cpu.toml cut to {args.iterations} + {args.specular} "
+          f"steps, seed {args.seed}; held-out {args.held_out}\n")
+    print("| arm | diversity ratio | spread over z_da | exemplar L1 (single colour) | G_n / own normals ° (σ 2 px) "
+          "| w/o G_sp PSNR / FLIP | NGP PSNR / FLIP | train min |\n|---|---|---|---|---|---|---|---|")
+    for r in results:
+        m, n = r["maps"], r["maps"]["normal_error_deg"]
+        image = {k: f"{v['psnr']:.2f} / {v['flip']:.3f}" for k, v in r["images"].items()}
+        print(f"| {r['arm']} | {m['appearance_diversity_ratio']:.3f} | {m['albedo_diversity_l1']:.4f} | "
+              f"{m['albedo_reconstruction_l1']:.3f} ({m['albedo_single_colour_l1']:.3f}) | "
+              f"{n['G_n']['mean']:.1f} / {n['from_coarse_depth']['mean']:.1f} | {image.get('without G_sp', '–')} | "
+              f"{image.get('NGP', '–')} | {r['train_minutes']:.1f} |")
+
+
+if __name__ == "__main__":
+    main()
