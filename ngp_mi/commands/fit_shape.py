@@ -1,23 +1,34 @@
-"""``ngp-mi fit-shape``: recover a shape from the views of a ``render-dataset`` folder through the
-differentiable depth projection Π_v (inverse rendering).
+"""``ngp-mi fit-shape``: recover a shape from images through the differentiable depth projection Π_v
+(inverse rendering). The targets are one shape's views of a ``render-dataset`` folder, or the
+user's own images with a ``cameras.json`` (:func:`load_user_targets`).
 
-The optimised mesh starts as a sphere, a mesh file, or the shape prior's own shape (``start="zs"``:
-the best of ``zs_candidates`` latents by mask loss, then z_s itself optimised for ``zs_steps``
-through G_shape, the differentiable iso-surface link and Π_v — :func:`fit_latent`), and moves its
-vertices x through the Laplacian parameterisation u = (I + λ L) x (:mod:`ngp_mi.geometry.laplacian`, Nicolet et al. 2021)
-with Adam. Each step projects it into every fitted view with silhouette gradients
-(:func:`ngp_mi.render.depth.project_depth`, pixel-averaged coverage c and depth d̄) and minimises
+What moves (paper Sec. 3's chain, each stage a function of its own):
 
-    L = w_mask · mean (c − m)² + w_depth · mean m·(d̄ − c·d)²,
+* (a) ``start="zs"``: the best of ``zs_candidates`` latents by mask loss, then z_s itself for
+  ``zs_steps`` through G_shape, the differentiable iso-surface link and Π_v (:func:`fit_latent`);
+  (b) with ``fit_decoder``, the decoder's weights too;
+* (c) the mesh's vertices x — from (a)/(b), a sphere or a mesh file — through the Laplacian
+  parameterisation u = (I + λ L) x (:mod:`ngp_mi.geometry.laplacian`, Nicolet et al. 2021), Adam.
 
-m and d the target mask and depth of each view (:func:`fit_losses`). The depth term only looks
-where the target has the object: the fit's depth over the target's background would pull the surface
-towards the camera (to depth 0), which the mask term avoids by shrinking the coverage instead. Views past ``--held-out`` are
-kept out of the fit and scored after it (mask IoU). Outputs: ``fit.obj`` (or ``.ply``), ``curves.png``,
-``sheet.png`` (target against fit, per view), ``progress.gif`` (the fitted silhouette over the
-steps), ``fit.json`` and ``report.md``; with the shape's source known (a procedural family or a
-mesh file), the Chamfer-L2 to it at the start and at the end. A killed fit resumes from its last
-state (``state/``: safetensors + a weights-only optimiser state).
+Each step projects the shape into every fitted view with silhouette gradients
+(:func:`ngp_mi.render.depth.project_depth`: pixel-averaged coverage c and depth d̄) and minimises
+the named terms of :func:`fit_losses`,
+
+    L = w_mask · mean (c − m)² + w_depth · mean m·(d̄ − c·d)² + w_image · mean |I − I_target|,
+
+m, d the target masks and depths. The depth term only looks where the target has the object (over
+the target's background it would pull the surface towards the camera; the mask term shrinks the
+coverage there instead). The image term (map networks given, targets with images) forms NGP's image
+I of each view from d̄ / c and c by G_n, G_da(z_da), R_diff (⊕ G_sp^real) in linear radiance
+(:func:`fit_images`), the appearance code z_da fitted beside the shape. A step that loses the shape
+from every view or gives a non-finite loss or gradient is undone and retried with half the step size.
+
+Views past ``--held-out`` are scored after the fit (mask IoU, image PSNR / FLIP). Outputs:
+``fit.obj`` (or ``.ply``), ``curves.png``, ``sheet.png`` (target against fit, per view),
+``progress.gif`` (the fitted silhouette over the steps), ``fit.json`` and ``report.md``; with the
+shape's source known (a procedural family or a mesh file), the Chamfer-L2 to it at the start and at
+the end. A killed fit resumes from its last state (``state/``: safetensors + a weights-only
+optimiser state).
 """
 
 from __future__ import annotations
