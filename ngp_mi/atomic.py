@@ -24,6 +24,7 @@ def _umask() -> int:
 
 
 _FOLDER_MODE = 0o777 & ~_umask()  # what mkdir gives; mkdtemp makes folders private (0700)
+_FILE_MODE = 0o666 & ~_umask()  # what open gives; some writers (safetensors) make files private (0600)
 
 
 @contextlib.contextmanager
@@ -45,6 +46,8 @@ def atomic_path(path: str | Path, directory: bool = False) -> Iterator[Path]:
         yield tmp
         if directory and path.is_dir():
             shutil.rmtree(path)
+        if not directory and tmp.exists():
+            os.chmod(tmp, _FILE_MODE)
         os.replace(tmp, path)
     finally:
         if tmp.is_dir():

@@ -1,19 +1,22 @@
 """Images people look at: sRGB conversion, PNG writing (atomic), labelled contact sheets and grids, GIFs.
 
 Captions wrap to the width of their tile (a word wider than the tile breaks between letters), so
-they stay legible and apart at every tile size. Pillow's built-in font has no Greek or mathematical
-glyphs: captions are written with their names (``φ`` → ``phi``, ``⊕`` → ``+``, ``Π`` → ``Pi``), and
-the HTML and Markdown reports keep the symbols.
+they stay legible and apart at every tile size. They are set in DejaVu Sans, the font matplotlib (a
+dependency) ships, which has the Greek and mathematical glyphs of the captions (φ, Π_v, ⊕, ²).
+Without it, Pillow's built-in font is used, which has none of them and almost no space between
+words: captions are then written with the symbols' names (``φ`` → ``phi``, ``⊕`` → ``+``).
 """
 
 from __future__ import annotations
 
+import functools
+import importlib.util
 import unicodedata
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
-from PIL import Image, ImageDraw
+from PIL import Image, ImageDraw, ImageFont
 
 from ngp_mi.atomic import atomic_path
 
@@ -57,14 +60,29 @@ def save_png(path: str | Path, image: np.ndarray) -> Path:
     return path
 
 
-LINE_HEIGHT = 14  # pixels per caption line (PIL's default bitmap font is 11 px high)
+LINE_HEIGHT = 14  # pixels per caption line (both fonts are at most 12 px high)
+
+
+@functools.lru_cache(maxsize=1)
+def caption_font() -> Any:
+    """DejaVu Sans at 10 px from matplotlib's package data (found without importing matplotlib), or
+    Pillow's built-in font when it is missing."""
+    spec = importlib.util.find_spec("matplotlib")
+    if spec is not None and spec.origin is not None:
+        path = Path(spec.origin).parent / "mpl-data" / "fonts" / "ttf" / "DejaVuSans.ttf"
+        if path.exists():
+            return ImageFont.truetype(str(path), 10)
+    return None  # Pillow's default
 SYMBOL_NAMES = {"φ": "phi", "θ": "theta", "Π": "Pi", "π": "pi", "ρ": "rho", "α": "alpha", "μ": "mu", "σ": "sigma",
                 "λ": "lambda", "Ω": "Omega", "⊕": "+", "→": "->", "−": "-", "…": "...", "×": "x", "≤": "<=",
                 "≥": ">=", "²": "^2", "³": "^3", "·": "."}
 
 
-def drawable(text: str) -> str:
-    """``text`` in the characters Pillow's built-in font draws: symbols by name, accents dropped."""
+def drawable(text: str, font: Any = "caption") -> str:
+    """``text`` as the caption font draws it: unchanged in DejaVu Sans; for Pillow's built-in font
+    (``font=None``), symbols by name and accents dropped."""
+    if (caption_font() if font == "caption" else font) is not None:
+        return text
     named = "".join(SYMBOL_NAMES.get(c, c) for c in text)
     plain = unicodedata.normalize("NFKD", named)
     return "".join(c for c in plain if c.isascii() or c == "°")
@@ -78,13 +96,14 @@ def wrap_label(draw: Any, text: str, width: float) -> list[str]:
     line = ""
     for word in text.split():
         candidate = f"{line} {word}" if line else word
-        if draw.textlength(candidate) <= width:
+        if draw.textlength(candidate, font=caption_font()) <= width:
             line = candidate
             continue
         if line:
             lines.append(line)
-        while len(word) > 1 and draw.textlength(word) > width:
-            cut = max(1, max((k for k in range(1, len(word)) if draw.textlength(word[:k]) <= width), default=1))
+        while len(word) > 1 and draw.textlength(word, font=caption_font()) > width:
+            cut = max(1, max((k for k in range(1, len(word)) if draw.textlength(word[:k], font=caption_font()) <= width),
+                             default=1))
             lines.append(word[:cut])
             word = word[cut:]
         line = word
@@ -100,7 +119,7 @@ def contact_sheet(images: Sequence[np.ndarray], labels: Sequence[str] | None = N
     if any(im.shape[:2] != (h, w) for im in images):
         raise ValueError("contact_sheet images must share one size")
     measure = ImageDraw.Draw(Image.new("RGB", (1, 1)))
-    wrapped = [wrap_label(measure, text, w - 2) for text in labels] if labels else None
+    wrapped = [wrap_label(measure, text, w - 4) for text in labels] if labels else None  # antialiased glyphs bleed 1 px
     rows = -(-len(images) // columns)
     cell_h = h + (label_height * max(len(lines) for lines in wrapped) if wrapped else 0)
     sheet = Image.new("RGB", (columns * (w + pad) + pad, rows * (cell_h + pad) + pad), (background,) * 3)
@@ -110,7 +129,7 @@ def contact_sheet(images: Sequence[np.ndarray], labels: Sequence[str] | None = N
         tile = image if image.ndim == 3 else np.repeat(image[..., None], 3, -1)
         sheet.paste(Image.fromarray(tile[..., :3]), (x, y))
         for j, line in enumerate(wrapped[i] if wrapped else ()):
-            draw.text((x + 2, y + h + 1 + j * label_height), line, fill=(220, 220, 220))
+            draw.text((x + 2, y + h + 1 + j * label_height), line, fill=(220, 220, 220), font=caption_font())
     return np.asarray(sheet)
 
 
@@ -126,7 +145,7 @@ def labelled_grid(rows: Sequence[Sequence[np.ndarray]], row_labels: Sequence[str
         raise ValueError(f"labelled_grid: {len(rows)} rows x {columns} columns need as many labels, "
                          f"got {len(row_labels)} and {len(column_labels)}")
     measure = ImageDraw.Draw(Image.new("RGB", (1, 1)))
-    heads = [wrap_label(measure, text, w - 2) for text in column_labels]
+    heads = [wrap_label(measure, text, w - 4) for text in column_labels]
     sides = [wrap_label(measure, text, row_label_width - 4) for text in row_labels]
     head_h = LINE_HEIGHT * max(len(lines) for lines in heads)
     cell_h = max(h, LINE_HEIGHT * max(len(lines) for lines in sides))
@@ -135,11 +154,12 @@ def labelled_grid(rows: Sequence[Sequence[np.ndarray]], row_labels: Sequence[str
     draw = ImageDraw.Draw(sheet)
     for c, lines in enumerate(heads):
         for j, line in enumerate(lines):
-            draw.text((row_label_width + pad + c * (w + pad) + 2, pad // 2 + j * LINE_HEIGHT), line, fill=(220, 220, 220))
+            draw.text((row_label_width + pad + c * (w + pad) + 2, pad // 2 + j * LINE_HEIGHT), line, fill=(220, 220, 220),
+                      font=caption_font())
     for r, (row, lines) in enumerate(zip(rows, sides)):
         y = head_h + pad + r * (cell_h + pad)
         for j, line in enumerate(lines):
-            draw.text((2, y + j * LINE_HEIGHT), line, fill=(220, 220, 220))
+            draw.text((2, y + j * LINE_HEIGHT), line, fill=(220, 220, 220), font=caption_font())
         for c, image in enumerate(row):
             if image.shape[:2] != (h, w):
                 raise ValueError("labelled_grid images must share one size")

@@ -35,3 +35,15 @@ def test_the_temporary_keeps_the_suffix_and_folders_replace_folders(tmp_path):
     assert (folder / "state.txt").read_text() == "new"
     assert sorted(os.listdir(tmp_path)) == ["ckpt-00000001", "mesh.obj"]
     assert stat.S_IMODE(folder.stat().st_mode) & 0o055
+
+
+def test_files_get_the_usual_permissions_whatever_the_writer_made(tmp_path):
+    import os
+    import stat
+
+    from ngp_mi.atomic import _FILE_MODE, atomic_path
+
+    with atomic_path(tmp_path / "weights.bin") as tmp:
+        tmp.write_bytes(b"x")
+        os.chmod(tmp, 0o600)  # what safetensors' writer leaves
+    assert stat.S_IMODE((tmp_path / "weights.bin").stat().st_mode) == _FILE_MODE

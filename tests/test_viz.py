@@ -1,4 +1,5 @@
 import numpy as np
+from PIL import Image
 import pytest
 
 from ngp_mi.viz import contact_sheet, drawable, labelled_grid, linear_to_srgb, save_animation, save_png, to_uint8
@@ -44,8 +45,21 @@ def test_labelled_grid_and_animation(tmp_path):
     assert frames.shape == (3, 16, 16, 3) and list(tmp_path.iterdir()) == [path]
 
 
-def test_symbols_the_font_lacks_are_written_by_name():
-    assert drawable("Π_v, φ 30°, R_diff ⊕ G_sp, μ(E_da), 128², café") == "Pi_v, phi 30°, R_diff + G_sp, mu(E_da), 128^2, cafe"
+def test_captions_are_set_in_a_font_with_the_symbols_and_spaces():
+    from PIL import ImageDraw, ImageFont
+
+    from ngp_mi.viz import caption_font
+
+    font = caption_font()
+    assert font is not None and "DejaVu" in font.getname()[0]  # matplotlib's, always installed with it
+    assert drawable("Π_v, φ 30°, R_diff ⊕ G_sp") == "Π_v, φ 30°, R_diff ⊕ G_sp"
+    draw = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    assert draw.textlength("z_s seed 0", font=font) - draw.textlength("z_sseed0", font=font) >= 5  # visible spaces
     tiles = [np.full((64, 64, 3), 200, np.uint8)]
-    assert np.array_equal(contact_sheet(tiles, ["φ 30°"]), contact_sheet(tiles, ["phi 30°"]))
-    assert np.array_equal(labelled_grid([tiles], ["Π_v"], ["⊕"]), labelled_grid([tiles], ["Pi_v"], ["+"]))
+    assert not np.array_equal(contact_sheet(tiles, ["φ 30°"]), contact_sheet(tiles, ["phi 30°"]))  # drawn, not named
+    assert ImageFont.load_default() is not None
+
+
+def test_symbols_pillows_own_font_lacks_are_written_by_name():
+    text = "Π_v, φ 30°, R_diff ⊕ G_sp, μ(E_da), 128², café"
+    assert drawable(text, font=None) == "Pi_v, phi 30°, R_diff + G_sp, mu(E_da), 128^2, cafe"
