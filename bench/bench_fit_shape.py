@@ -94,7 +94,8 @@ def main() -> None:
                  f"{mean('psnr_held_out_end'):.2f} / {mean('flip_held_out_end'):.3f}"
                  if "psnr_held_out_end" in results[0] else "–")
         ends = ", ".join(f"{r['chamfer_end']:.4f}" for r in results)
-        print(f"| {name} | {mean('chamfer_start'):.4f} | {ends} "
+        start_key = "chamfer_zs_start" if results[0].get("chamfer_zs_start") is not None else "chamfer_start"
+        print(f"| {name} | {mean(start_key):.4f} | {ends} "
               f"(mean {mean('chamfer_end'):.4f}) | {mean('mask_iou_held_out'):.3f} | {image} | "
               f"{statistics.median(r['seconds_per_step'] for r in results):.3f} |")
     print(f"\ncurves: {out / 'curves.png'}")

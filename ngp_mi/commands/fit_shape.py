@@ -322,6 +322,9 @@ def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitCon
         raise ValueError(f"fit-shape: none of {config.zs_candidates} latents of the shape prior gives a shape")
     best_loss, best_seed = min(scores)
     log(f"fit-shape: start z_s of seed {best_seed} (mask loss {best_loss:.4f}, best of {len(scores)})")
+    truth = _source_mesh(targets.record)
+    chamfer_zs_start = (_chamfer(shape_model.shape(latent(best_seed, dim), resolution=config.extract_resolution).mesh,
+                                 truth) if truth is not None else None)
     z = latent(best_seed, dim).clone().requires_grad_(True)
     moving = [z, *decoder, *([image_term.z_da] if image_term is not None else [])]
     previous = [p.detach().clone() for p in moving]
@@ -361,6 +364,7 @@ def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitCon
     log(f"fit-shape: z_s fitted, mask loss {history[0]['mask']:.4f} → {history[-1]['mask']:.4f}" if history else
         "fit-shape: no z_s step")
     return extraction.mesh, {"zs_seed": best_seed, "zs_history": history, "zs_halvings": halvings,
+                             "chamfer_zs_start": chamfer_zs_start,  # the best latent's shape, before z_s moved
                              "decoder_fitted": bool(decoder),
                              **({"z_da": image_term.z_da.detach()[0].tolist()} if image_term is not None else {})}
 

@@ -161,7 +161,7 @@ def test_the_shape_prior_starts_the_fit_and_its_latent_is_fitted_first(chair_vie
     messages = []
     config = FitConfig(str(chair_views), start="zs", zs_candidates=4, zs_steps=6, steps=10, extract_resolution=32)
     summary = fit_shape(config, tmp_path, prior, log=messages.append)
-    assert summary["start"] == "zs" and 0 <= summary["zs_seed"] < 4
+    assert summary["start"] == "zs" and 0 <= summary["zs_seed"] < 4 and summary["chamfer_zs_start"] > 0
     assert any("start z_s of seed" in m for m in messages) and any("z_s fitted" in m for m in messages)
     latent = json.loads((tmp_path / "state" / "latent.json").read_text())
     assert len(latent["zs_history"]) + latent["zs_halvings"] == 6
