@@ -165,10 +165,11 @@ class ShapeModel(BaseModel):
     @torch.no_grad()
     def extract(self, code: torch.Tensor, resolution: int = 128, coarse: int | None = None) -> Extraction:
         """Marching cubes of one code's field, coarse-to-fine: the coarse grid (default: the largest
-        of 32, 16, 8, … dividing ``resolution``) finds the cells the surface passes through."""
+        divisor of ``resolution`` up to 32 — 24 for 48³, 32 for 64³) finds the cells the surface
+        passes through; a grid much coarser than that misses thin parts."""
         self.decoder.eval()
         if coarse is None:
-            coarse = next(c for c in (32, 16, 8, 4, 2, 1) if resolution % c == 0)
+            coarse = next(c for c in range(min(32, resolution), 0, -1) if resolution % c == 0)
         return extract_mesh(self.field(code.detach()), resolution, LEVEL, coarse=coarse, inside_above=True)
 
     def shape(self, z: torch.Tensor, resolution: int = 128, coarse: int | None = None) -> Extraction:
