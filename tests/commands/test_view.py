@@ -153,3 +153,27 @@ def test_the_page_changes_the_image_when_a_light_and_the_appearance_change(ngp, 
     finally:
         browser.close()
         viewer.stop()
+
+
+def test_the_viewer_starts_on_the_shipped_chair_when_no_model_is_named(monkeypatch):
+    """`ngp-mi view` with no model serves the shipped chair (the server itself is the browser test's)."""
+    import ngp_mi.commands.view as module
+
+    started = {}
+
+    class Recorder:
+        def __init__(self, state, *args):
+            started["state"] = state
+
+        def stop(self):
+            started["stopped"] = True
+
+    def interrupt(seconds):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(module, "Viewer", Recorder)
+    monkeypatch.setattr(module.time, "sleep", interrupt)
+    module.view(log=lambda *_: None)
+    state = started["state"]
+    assert started["stopped"] and state.model == "chair" and state.scene.ngp.card["family"] == "chair"
+    assert state.render(state.scene.camera) is not None
