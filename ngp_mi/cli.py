@@ -498,9 +498,10 @@ COMMANDS: dict[str, tuple[Callable, Callable, str, str]] = {
                 "NGP on generated maps) against a high-spp path-traced reference; write images, a speed-accuracy "
                 "plot, results.json and report.html."),
     "train": (train_flags, train, "train a stage of NGP from a recipe (train/*.toml); resumes automatically",
-              "Train the shape prior (stage 'shape': IM-NET autoencoder + latent WGAN-GP) or the map networks (stage "
-              "'maps') from a TOML recipe, with values overridden by --set; logs, metrics, image grids and "
-              "checkpoints go to --out or the recipe's [train] out. Maps: multi-process with torchrun."),
+              "Train the shape prior (stage 'shape': IM-NET autoencoder + latent WGAN-GP), the map networks (stage "
+              "'maps') or G_shape's decoder through Π_v with the maps' 2-D losses (stage 'e2e') from a TOML recipe, "
+              "with values overridden by --set; logs, metrics, image grids and checkpoints go to --out or the "
+              "recipe's [train] out. Maps and e2e: multi-process with torchrun."),
     "sample-shapes": (sample_shapes_flags, sample_shapes,
                       "meshes and a rendered contact sheet from a trained shape prior",
                       "Sample z_s, extract meshes (coarse-to-fine marching cubes), write OBJ/PLY, sheet.png, "
@@ -510,10 +511,12 @@ COMMANDS: dict[str, tuple[Callable, Callable, str, str]] = {
                  "Mitsuba from the given views, generate normals and albedo, shade under the lights and blend the "
                  "realistic specular map. Writes images/, sheet.png (every intermediate map), generate.json and "
                  "report.md."),
-    "fit-shape": (fit_shape_flags, fit_shape, "recover a shape from a dataset's views through the differentiable Π_v",
-                  "Fit a mesh (from a sphere or a mesh file) to the masks and depths of one shape of a render-dataset "
-                  "folder: vertices through the Laplacian parameterisation (largesteps), Π_v with silhouette "
-                  "gradients; writes fit.obj, curves, target-vs-fit sheet, a GIF of the fit and a report; resumable."),
+    "fit-shape": (fit_shape_flags, fit_shape, "recover a shape from images through the differentiable Π_v",
+                  "Fit a shape (from a sphere, a mesh file or the shape prior's z_s) to the masks, depths and images "
+                  "of one shape of a render-dataset folder, or to your own images with a cameras.json: z_s (and the "
+                  "decoder), then vertices through the Laplacian parameterisation (largesteps), Π_v with silhouette "
+                  "gradients, the image through NGP's networks with a model; writes the mesh, curves, a "
+                  "target-vs-fit sheet, a GIF of the fit and a report; resumable."),
     "view": (view_flags, view, "an interactive NGP viewer in the browser (viser): every handle, live",
              "Serve a page on which you orbit, pan and zoom the NGP image, drag lights as gizmos and set shape, "
              "appearance, variant, constants, the map shown and the resolution; save images with their settings "

@@ -309,22 +309,21 @@ def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitCon
     for p in decoder:
         p.requires_grad_(True)
     dim, cams = shape_model.config.z_dim, targets.cameras[fitted]
-    scores = []
+    scores, candidates = [], {}
     for seed in range(config.zs_candidates):
-        extraction = shape_model.shape(latent(seed, dim), resolution=config.extract_resolution)
-        if extraction.mesh is None:
+        mesh = shape_model.shape(latent(seed, dim), resolution=config.extract_resolution).mesh
+        if mesh is None:
             continue
         with torch.no_grad():
-            maps = project_depth(torch.as_tensor(extraction.mesh.vertices, dtype=torch.float32), extraction.mesh.faces,
-                                 cams)
+            maps = project_depth(torch.as_tensor(mesh.vertices, dtype=torch.float32), mesh.faces, cams)
         scores.append((float((maps.mask - targets.mask[fitted]).square().mean()), seed))
+        candidates[seed] = mesh
     if not scores:
         raise ValueError(f"fit-shape: none of {config.zs_candidates} latents of the shape prior gives a shape")
     best_loss, best_seed = min(scores)
     log(f"fit-shape: start z_s of seed {best_seed} (mask loss {best_loss:.4f}, best of {len(scores)})")
     truth = _source_mesh(targets.record)
-    chamfer_zs_start = (_chamfer(shape_model.shape(latent(best_seed, dim), resolution=config.extract_resolution).mesh,
-                                 truth) if truth is not None else None)
+    chamfer_zs_start = _chamfer(candidates[best_seed], truth) if truth is not None else None
     z = latent(best_seed, dim).clone().requires_grad_(True)
     moving = [z, *decoder, *([image_term.z_da] if image_term is not None else [])]
     previous = [p.detach().clone() for p in moving]
