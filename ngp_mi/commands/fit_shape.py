@@ -5,7 +5,8 @@ user's own images with a ``cameras.json`` (:func:`load_user_targets`).
 What moves (paper Sec. 3's chain, each stage a function of its own):
 
 * (a) ``start="zs"``: the best of ``zs_candidates`` latents by mask loss, then z_s itself for
-  ``zs_steps`` through G_shape, the differentiable iso-surface link and Π_v (:func:`fit_latent`);
+  ``zs_steps`` through G_shape, the differentiable iso-surface link and Π_v (:func:`fit_latent`),
+  ending on its lowest-loss step (Adam's steps on z_s overshoot and come back: the last is often not it);
   (b) with ``fit_decoder``, the decoder's weights too;
 * (c) the mesh's vertices x — from (a)/(b), a sphere or a mesh file — through the Laplacian
   parameterisation u = (I + λ L) x (:mod:`ngp_mi.geometry.laplacian`, Nicolet et al. 2021), Adam.
@@ -70,6 +71,7 @@ class FitConfig:
     zs_candidates: int = 8
     zs_steps: int = 60
     zs_lr: float = 5e-2
+    zs_keep_best: bool = True  # end the latent phase on its lowest-loss step, not its last
     fit_decoder: bool = False  # phase (b): the decoder's weights move with z_s
     decoder_lr: float = 1e-4
     extract_resolution: int = 48  # marching-cubes grid of G_shape's surface while z_s is fitted
@@ -334,6 +336,7 @@ def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitCon
         groups.append({"params": [image_term.z_da], "lr": config.zda_lr})
     optimizer = torch.optim.Adam(groups)
     history, halvings = [], 0
+    best_total, best, best_step = float("inf"), previous, 0  # the lowest-loss latent seen: noisy steps end anywhere
     for step in range(config.zs_steps):
         surface = shape_model.differentiable_surface(z, resolution=config.extract_resolution)
         if surface is None:  # this z_s has no surface: undo the last step, take half of it
@@ -348,11 +351,16 @@ def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitCon
         optimizer.zero_grad(set_to_none=True)
         terms["total"].backward()
         previous = [p.detach().clone() for p in moving]
+        if float(terms["total"]) < best_total:
+            best_total, best, best_step = float(terms["total"]), previous, step + 1
         if all(p.grad is None or torch.isfinite(p.grad).all() for p in moving):
             optimizer.step()
         else:
             log(f"fit-shape: z_s step {step}: a non-finite gradient; skipped")
         history.append({"step": step + 1, **{k: float(v.detach()) for k, v in terms.items()}})
+    if config.zs_keep_best:
+        for p, kept in zip(moving, best):
+            p.data.copy_(kept)
     extraction = shape_model.shape(z.detach(), resolution=config.extract_resolution)
     if extraction.mesh is None:
         for p, kept in zip(moving, previous):
@@ -360,10 +368,14 @@ def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitCon
         extraction = shape_model.shape(z.detach(), resolution=config.extract_resolution)
     for p in decoder:
         p.requires_grad_(False)
-    log(f"fit-shape: z_s fitted, mask loss {history[0]['mask']:.4f} → {history[-1]['mask']:.4f}" if history else
-        "fit-shape: no z_s step")
+    if history:
+        end = next(h for h in history if h["step"] == best_step) if config.zs_keep_best else history[-1]
+        log(f"fit-shape: z_s fitted, mask loss {history[0]['mask']:.4f} → {end['mask']:.4f} (step {end['step']})")
+    else:
+        log("fit-shape: no z_s step")
     return extraction.mesh, {"zs_seed": best_seed, "zs_history": history, "zs_halvings": halvings,
                              "chamfer_zs_start": chamfer_zs_start,  # the best latent's shape, before z_s moved
+                             "zs_end_step": best_step if config.zs_keep_best else (history[-1]["step"] if history else 0),
                              "decoder_fitted": bool(decoder),
                              **({"z_da": image_term.z_da.detach()[0].tolist()} if image_term is not None else {})}
 

@@ -166,6 +166,8 @@ def test_the_shape_prior_starts_the_fit_and_its_latent_is_fitted_first(chair_vie
     latent = json.loads((tmp_path / "state" / "latent.json").read_text())
     assert len(latent["zs_history"]) + latent["zs_halvings"] == 6
     assert all(np.isfinite(h["total"]) for h in latent["zs_history"])
+    # the phase ends on its lowest-loss latent, not on wherever its last (noisy) step went
+    assert latent["zs_end_step"] == min(latent["zs_history"], key=lambda h: h["total"])["step"]
     assert summary["loss_end"] < summary["loss_start"] and np.isfinite(summary["chamfer_end"])
     again = fit_shape(config, tmp_path, prior, log=messages.append)  # done: phase (a) is not repeated
     assert again["zs_seed"] == summary["zs_seed"] and sum("start z_s of seed" in m for m in messages) == 1
@@ -350,6 +352,11 @@ def test_zero_vertex_steps_stop_after_the_latent_phase(chair_views, tiny_run, tm
     config = FitConfig(str(chair_views), start="zs", zs_candidates=2, zs_steps=3, steps=0, extract_resolution=32)
     summary = fit_shape(config, tmp_path, ShapeModel.from_run(tiny_run[0]), log=lambda *_: None)
     assert summary["steps"] == 0 and summary["loss_end"] is None and np.isfinite(summary["chamfer_end"])
+    last = fit_shape(dataclasses.replace(config, zs_keep_best=False), tmp_path / "last",
+                     ShapeModel.from_run(tiny_run[0]), log=lambda *_: None)
+    latent = json.loads((tmp_path / "last" / "state" / "latent.json").read_text())
+    assert latent["zs_end_step"] == latent["zs_history"][-1]["step"]  # without zs_keep_best: the last step
+    assert np.isfinite(last["chamfer_end"])
     assert (tmp_path / "curves.png").stat().st_size > 0 and "progress.gif" not in (tmp_path / "report.md").read_text()
     with pytest.raises(ValueError, match="--steps must be >= 1"):
         FitConfig(str(chair_views), steps=0)
