@@ -87,3 +87,16 @@ def test_the_card_adds_up_resumed_training_time_and_carries_the_runs_measurement
     main(["export-model", "--maps-run", str(maps_run), "--shape-run", str(shape_run), "--out", str(tmp_path / "m")])
     card = json.loads((tmp_path / "m" / "card.json").read_text())
     assert card["shape"]["figures"]["metrics.json"] == json.loads((shape_run / "metrics.json").read_text())
+
+
+def test_the_shipped_models_load_with_their_cards_within_the_size_budget():
+    """Every model in the package loads (sha256 checked), says what it is and what it measured, and
+    all of them together stay within issue 16's 30 MB."""
+    total = sum(f.stat().st_size for f in PRETRAINED_ROOT.rglob("*") if f.is_file())
+    assert total <= 30e6, f"shipped models take {total / 1e6:.1f} MB"
+    for name in available():
+        maps, specular, shape, card = load_model(name)
+        assert card["family"] == name and specular is not None and shape is not None
+        assert card["maps"]["steps"] > 0 and card["shape"]["steps"] > 0 and card["maps"]["training_seconds"] > 0
+        assert "normal_error_deg" in card["maps"]["figures"]["eval/eval.json"]
+        assert card["maps"]["recipe"]["data"]["source"] == name
