@@ -368,14 +368,15 @@ def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitCon
         extraction = shape_model.shape(z.detach(), resolution=config.extract_resolution)
     for p in decoder:
         p.requires_grad_(False)
+    end_step = best_step if config.zs_keep_best else (history[-1]["step"] if history else 0)
     if history:
-        end = next(h for h in history if h["step"] == best_step) if config.zs_keep_best else history[-1]
-        log(f"fit-shape: z_s fitted, mask loss {history[0]['mask']:.4f} → {end['mask']:.4f} (step {end['step']})")
+        end = next(h for h in history if h["step"] == end_step)
+        log(f"fit-shape: z_s fitted, mask loss {history[0]['mask']:.4f} → {end['mask']:.4f} (step {end_step})")
     else:
         log("fit-shape: no z_s step")
     return extraction.mesh, {"zs_seed": best_seed, "zs_history": history, "zs_halvings": halvings,
                              "chamfer_zs_start": chamfer_zs_start,  # the best latent's shape, before z_s moved
-                             "zs_end_step": best_step if config.zs_keep_best else (history[-1]["step"] if history else 0),
+                             "zs_end_step": end_step,
                              "decoder_fitted": bool(decoder),
                              **({"z_da": image_term.z_da.detach()[0].tolist()} if image_term is not None else {})}
 
