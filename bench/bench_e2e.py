@@ -43,7 +43,7 @@ from ngp_mi.models.maps import MapsModel
 from ngp_mi.models.shape import ShapeModel
 from ngp_mi.pipeline import NGP, EmptyShape, latent
 from ngp_mi.training.shape import autoencoder_iou, sample_metrics, split_ids
-from ngp_mi.viz import labelled_grid, linear_to_srgb, save_png, to_uint8
+from ngp_mi.viz import chw_to_uint8, labelled_grid, save_png
 
 
 def shape_figures(run: str | Path, cache: Path, held_out: int) -> dict[str, float]:
@@ -67,7 +67,7 @@ def sheet_row(ngp: NGP, seeds: range, camera: Camera) -> list[np.ndarray]:
             row.append(np.zeros((camera.height, camera.width, 3), np.uint8))
             continue
         image = ngp.render(mesh, camera, ngp.appearance(0), overhead_rig(), variant="no_sp")["image"]
-        row.append(to_uint8(linear_to_srgb(image[0].permute(1, 2, 0).clamp(0, 1).numpy())))
+        row.append(chw_to_uint8(image.clamp(0, 1)))
     return row
 
 
@@ -82,8 +82,8 @@ def main() -> None:
     parser.add_argument("--held-out", type=int, default=16, help="the shape cache's last shapes, unseen in training")
     parser.add_argument("--out", default="outputs/bench/e2e")
     args = parser.parse_args()
-    missing = [f"--{name} {getattr(args, name.replace('-', '_'))}" for name in defaults
-               if not Path(getattr(args, name.replace("-", "_"))).is_dir()]
+    given = {name: vars(args)[name.replace("-", "_")] for name in defaults}
+    missing = [f"--{name} {folder}" for name, folder in given.items() if not Path(folder).is_dir()]
     if missing:
         print(f"bench_e2e: skipped, no such folder: {', '.join(missing)} (the module docstring says how to make them)")
         return
@@ -99,11 +99,11 @@ def main() -> None:
         ngp = NGP.of(MapsModel.from_run(maps_run), None, ShapeModel.from_run(shape_run))
         images.append(sheet_row(ngp, range(6), camera))
         rows.append((name, maps_eval, shape))
-    steps = json.loads((Path(args.link) / "recipe.json").read_text()).get("tables", {}).get("train", {})
+    e2e_train = json.loads((Path(args.link) / "recipe.json").read_text()).get("tables", {}).get("train", {})
     sheet = save_png(out / "sheet.png", labelled_grid(images, list(states), [f"z_s seed {s}" for s in range(6)],
                                                       row_label_width=150))
     print(f"# bench_e2e — {time.strftime('%Y-%m-%d')}, {platform.machine()}, torch {torch.__version__}; family "
-          f"{args.family}; e2e steps {steps.get('iterations', '?')}, held-out maps data {args.data}\n")
+          f"{args.family}; e2e steps {e2e_train.get('iterations', '?')}, held-out maps data {args.data}\n")
     print("| state | G_n / own normals (mean °) | exemplar L1 | diversity ratio | AE IoU held out | COV / MMD (64 samples) |"
           "\n|---|---|---|---|---|---|")
     for name, m, s in rows:
