@@ -19,7 +19,7 @@ The runs (the defaults below), after ``scripts/ship-model.sh car 2000 400``, eac
     .venv/bin/python bench/bench_e2e.py [--family car --base-maps outputs/train/maps_car
         --base-shape outputs/train/shape_car --link outputs/train/e2e_car_link
         --control outputs/train/e2e_car_control --data outputs/data/held_out_car
-        --shape-cache outputs/data/shape_car --out outputs/bench/e2e]
+        --arm "anchored: shape_anchor = 1=outputs/train/e2e_car_anchor" --out outputs/bench/e2e]
 
 Without those folders it says which is missing and skips (``make bench`` runs every benchmark).
 """
@@ -36,22 +36,22 @@ import numpy as np
 import torch
 
 from ngp_mi.camera import Camera
-from ngp_mi.data.shapes import ShapeDataset
 from ngp_mi.eval.maps_eval import evaluate_maps
 from ngp_mi.lights import overhead_rig
 from ngp_mi.models.maps import MapsModel
 from ngp_mi.models.shape import ShapeModel
 from ngp_mi.pipeline import NGP, EmptyShape, latent
-from ngp_mi.training.shape import autoencoder_iou, sample_metrics, split_ids
+from ngp_mi.training.shape import autoencoder_iou, run_shape_data, sample_metrics
 from ngp_mi.viz import chw_to_uint8, labelled_grid, save_png
 
 
-def shape_figures(run: str | Path, cache: Path, held_out: int) -> dict[str, float]:
-    """Autoencoder IoU on the held-out shapes and COV / MMD of 64 samples, as `train shape` reports them."""
+def shape_figures(run: str | Path, base_shape: str | Path) -> dict[str, float]:
+    """Autoencoder IoU on the held-out shapes and COV / MMD of 64 samples, as `train shape` reports them
+    (the shapes and split of ``base_shape``, the run the arms start from)."""
     model = ShapeModel.from_run(run)
-    ids = [r["id"] for r in ShapeDataset.index(cache)]
-    train_ids, held_ids = split_ids(ids, held_out)
-    train, held = ShapeDataset(cache, ids=train_ids), ShapeDataset(cache, ids=held_ids)
+    _, train, held = run_shape_data(base_shape)
+    if held is None:
+        raise ValueError(f"{base_shape}: trained without held-out shapes; no autoencoder IoU to compare")
     samples = sample_metrics(model, [train.surface(i) for i in range(len(train))], [], 64, 64, seed=1)
     return {"iou_held_out": autoencoder_iou(model, held, model.config.voxel_resolution),
             "coverage": samples.get("coverage", 0.0), "mmd": samples.get("mmd", float("nan")),
@@ -75,11 +75,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     defaults = {"base-maps": "outputs/train/maps_car", "base-shape": "outputs/train/shape_car",
                 "link": "outputs/train/e2e_car_link", "control": "outputs/train/e2e_car_control",
-                "data": "outputs/data/held_out_car", "shape-cache": "outputs/data/shape_car"}
+                "data": "outputs/data/held_out_car"}
     for name, default in defaults.items():
         parser.add_argument(f"--{name}", default=default)
     parser.add_argument("--family", default="car")
-    parser.add_argument("--held-out", type=int, default=16, help="the shape cache's last shapes, unseen in training")
+    parser.add_argument("--arm", action="append", default=[], metavar="NAME=FOLDER",
+                        help="a further `train e2e` run to compare (e.g. with shape_anchor set)")
     parser.add_argument("--out", default="outputs/bench/e2e")
     args = parser.parse_args()
     given = {name: vars(args)[name.replace("-", "_")] for name in defaults}
@@ -91,11 +92,16 @@ def main() -> None:
     states = {"trained runs (start)": (args.base_maps, args.base_shape),
               "control: link = false": (args.control, f"{args.control}/shape"),
               "end to end: link = true": (args.link, f"{args.link}/shape")}
+    for arm in args.arm:
+        name, _, folder = arm.partition("=")
+        if not Path(folder).is_dir():
+            raise SystemExit(f"bench_e2e: --arm {arm}: no such folder {folder}")
+        states[name] = (folder, f"{folder}/shape")
     camera = Camera.orbit(20.0, 35.0, 128)
     rows, images = [], []
     for k, (name, (maps_run, shape_run)) in enumerate(states.items()):
         maps_eval = evaluate_maps(maps_run, args.data, out / f"eval-{k}")
-        shape = shape_figures(shape_run, Path(args.shape_cache), args.held_out)
+        shape = shape_figures(shape_run, args.base_shape)
         ngp = NGP.of(MapsModel.from_run(maps_run), None, ShapeModel.from_run(shape_run))
         images.append(sheet_row(ngp, range(6), camera))
         rows.append((name, maps_eval, shape))

@@ -10,8 +10,13 @@ setting: Chamfer-L2 to the true chair (4,096 samples each way), mask IoU and ima
 the held-out views, seconds per step; the convergence curves side by side in ``--out``/curves.png;
 with ``--model``, the split of one image-term step (Π_v, networks, shading, backward, optimiser).
 
+``--user-meshes``: instead of procedural chairs, the two meshes of :func:`user_meshes` (a swivel
+chair and a stool, shapes the chair family never makes), written as OBJ files and read back through
+``render-dataset``'s mesh-folder source, as a user's own meshes would be.
+
     .venv/bin/python bench/bench_fit_shape.py [--shapes 3] [--seed 500] [--res 128] [--steps 150]
-                                              [--model chair] [--only a,b] [--out outputs/bench/fit]
+                                              [--model chair] [--only a,b] [--user-meshes]
+                                              [--out outputs/bench/fit]
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ from pathlib import Path
 import torch
 
 from ngp_mi.commands.fit_shape import FitConfig, fit_shape
+from ngp_mi.data.manifest import load_manifest
 from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
 
 SETTINGS = {  # name → FitConfig fields (and whether the model's networks are in the loop)
@@ -39,6 +45,8 @@ PRIOR_SETTINGS = {
     "(a) prior: z_s only, masks + depths": ({"start": "zs", "steps": 0, "image_weight": 0.0}, False),
     "(c) prior then vertices, masks only": ({"start": "zs", "depth_weight": 0.0, "image_weight": 0.0}, False),
     "(c) prior then vertices, masks + images (networks in the loop)": ({"start": "zs", "depth_weight": 0.0}, True),
+    "(c) after (b): z_s and the decoder, then vertices, masks only": (
+        {"start": "zs", "fit_decoder": True, "depth_weight": 0.0, "image_weight": 0.0}, False),
 }
 
 
@@ -51,13 +59,19 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=150)
     parser.add_argument("--model", help="a shipped model or model folder: adds the fits from its shape prior")
     parser.add_argument("--only", default="", help="comma-separated indices of the settings to run (default: all)")
+    parser.add_argument("--user-meshes", action="store_true",
+                        help="fit the two meshes of user_meshes() (a swivel chair, a stool) instead of chairs")
     parser.add_argument("--out", default="outputs/bench/fit")
     args = parser.parse_args()
     out = Path(args.out)
-    targets = out / f"{'targets-real' if args.model else 'targets'}-{args.seed}"
-    render_dataset(DatasetConfig(source="chair", num_shapes=args.shapes, views=12, resolution=args.res,
+    source, num_shapes = "chair", args.shapes
+    if args.user_meshes:
+        source, num_shapes = str(user_meshes(out / "user-meshes")), 2
+    targets = out / f"{'targets-real' if args.model else 'targets'}-{'user' if args.user_meshes else args.seed}"
+    render_dataset(DatasetConfig(source=source, num_shapes=num_shapes, views=12, resolution=args.res,
                                  channels=("depth", "mask"), seed=args.seed, real_spp=64 if args.model else 0), targets,
                    progress=False)
+    shape_ids = list(dict.fromkeys(r["shape_id"] for r in load_manifest(targets)))
     ngp = None
     settings = dict(SETTINGS)
     if args.model:
@@ -71,8 +85,8 @@ def main() -> None:
         if index not in chosen:
             continue
         results = []
-        for k in range(args.shapes):
-            config = FitConfig(str(targets), shape_id=f"chair/{args.seed + k:06d}", held_out=4,
+        for k, shape_id in enumerate(shape_ids):
+            config = FitConfig(str(targets), shape_id=shape_id, held_out=4,
                                **{"steps": args.steps, "checkpoint_every": max(1, args.steps), **fields})
             folder = out / f"{index}-{k}"
             start = time.perf_counter()
@@ -86,7 +100,8 @@ def main() -> None:
         rows.append((name, results))
     _plot(curves, out / "curves.png")
     print(f"# bench_fit_shape — {time.strftime('%Y-%m-%d')}, {platform.machine()}, torch {torch.__version__} "
-          f"({torch.get_num_threads()} threads); {args.shapes} chairs from seed {args.seed}, 8 + 4 held-out views at {args.res}², "
+          f"({torch.get_num_threads()} threads); {', '.join(shape_ids) if args.user_meshes else f'{num_shapes} chairs from seed {args.seed}'}, "
+          f"8 + 4 held-out views at {args.res}², "
           f"{args.steps} vertex steps{f', model {args.model}' if args.model else ''}\n")
     print("| setting | Chamfer-L2 start | Chamfer-L2 end (per chair) | held-out mask IoU | held-out PSNR / FLIP "
           "start → end | s / step |\n|---|---|---|---|---|---|")
@@ -103,6 +118,47 @@ def main() -> None:
     print(f"\ncurves: {out / 'curves.png'}")
     if ngp is not None:
         print("\n" + step_split(ngp, targets, args.seed))
+
+
+def user_meshes(folder: Path) -> Path:
+    """Two meshes a user might bring, as OBJ files in ``folder``: a swivel chair (five-star base, a
+    pole, a round seat, a tilted back) and a three-legged stool with stretchers — shapes outside the
+    procedural chair family (four legs, a flat back). Each is the outer surface of a union of solids
+    (marching cubes of its signed distance at 128³), so it is one closed surface, as a scanned or
+    modelled mesh would be."""
+    import math
+
+    import numpy as np
+    import trimesh
+
+    from ngp_mi.geometry.extract import extract_mesh
+    from ngp_mi.geometry.sdf import Box, Cylinder, SolidShape, rotation
+
+    up = np.array([0.0, 1.0, 0.0])
+    swivel = [(Box(np.array([0.0, 0.05, 0.0]), np.array([0.30, 0.025, 0.035]), rotation(up, 72 * k)), 0)
+              for k in range(5)]
+    swivel += [(Cylinder(np.array([0.0, 0.28, 0.0]), 0.035, 0.22), 0),
+               (Cylinder(np.array([0.0, 0.53, 0.0]), 0.27, 0.035), 1),
+               (Box(np.array([0.0, 0.85, -0.24]), np.array([0.24, 0.26, 0.03]), rotation([1, 0, 0], -12)), 2),
+               (Box(np.array([0.0, 0.62, -0.22]), np.array([0.04, 0.08, 0.02]), rotation([1, 0, 0], -12)), 2)]
+    stool = [(Cylinder(np.array([0.0, 0.70, 0.0]), 0.25, 0.04), 1)]
+    for k in range(3):
+        angle = 2 * math.pi * k / 3
+        outward = np.array([math.cos(angle), 0.0, math.sin(angle)])
+        tilt = rotation(np.cross(up, outward), -10)  # legs splayed outwards by 10°
+        stool.append((Cylinder(0.19 * outward + [0, 0.34, 0], 0.028, 0.34, tilt), 0))
+        side = np.array([math.cos(angle + math.pi / 3), 0.0, math.sin(angle + math.pi / 3)])
+        stool.append((Box(0.105 * side + [0, 0.25, 0], np.array([0.02, 0.02, 0.18]),  # a stretcher between legs
+                          rotation(up, -math.degrees(angle + math.pi / 3))), 0))
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, parts in (("swivel_chair", swivel), ("stool", stool)):
+        path = folder / f"{name}.obj"
+        if path.exists():
+            continue
+        solid = SolidShape(tuple(parts), name=name).normalized()
+        mesh = extract_mesh(lambda p: torch.from_numpy(solid.sdf(p.numpy())), resolution=128).mesh
+        trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(path)
+    return folder
 
 
 def step_split(ngp, targets: Path, seed: int, repeats: int = 5) -> str:

@@ -11,8 +11,10 @@ views at 64²):
 * ``compare --maps-checkpoint`` on 3 held-out chairs × 2 views under the rig: sRGB PSNR / FLIP on
   the object of NGP without and with G_sp^real against a 1024-spp path-traced reference.
 
-Arms run one after the other and resume (a killed experiment continues where it stopped); the table
-is printed at the end (Markdown, for bench/RESULTS.md).
+Arms run one after the other and resume (a killed experiment continues where it stopped); each
+arm's figures are kept in its folder (``result.json``, reused when the arm and budget match), so arms
+can also run side by side as separate invocations (one thread each) and a last invocation with all
+of them prints the table at once (Markdown, for bench/RESULTS.md).
 
     .venv/bin/python bench/bench_map_recipes.py --held-out outputs/data/held_out_chairs \\
         --arm "paper-faithful (cpu recipe)=" \\
@@ -31,6 +33,7 @@ from pathlib import Path
 
 import torch
 
+from ngp_mi.atomic import write_json
 from ngp_mi.eval.compare import CompareConfig, run_compare
 from ngp_mi.eval.maps_eval import evaluate_maps
 from ngp_mi.training.maps import train_maps
@@ -40,6 +43,12 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def run_arm(name: str, overrides: list[str], args: argparse.Namespace, out: Path) -> dict:
     folder = out / name.replace(" ", "_").replace("/", "-")
+    budget = {"iterations": args.iterations, "specular": args.specular, "seed": args.seed, "held_out": args.held_out}
+    saved = folder / "result.json"
+    if saved.exists():
+        result = json.loads(saved.read_text())
+        if result.get("overrides") == overrides and result.get("budget", budget) == budget:
+            return result
     began = time.perf_counter()
     run = train_maps(ROOT / "train" / "maps_cpu.toml", log=lambda *_: None, out=folder / "run",
                      overrides=[f"train.iterations={args.iterations}", f"specular.iterations={args.specular}",
@@ -52,8 +61,10 @@ def run_arm(name: str, overrides: list[str], args: argparse.Namespace, out: Path
     images = {label: by_method[method] for label, method in (
         ("without G_sp", "NGP w/o G_sp^real: R_diff on generated maps"), ("NGP", "NGP: R_diff ⊕ G_sp^real"))
         if method in by_method}
-    return {"arm": name, "overrides": overrides, "train_minutes": minutes, "maps": maps,
-            "images": {k: {"psnr": v["psnr_srgb_masked"], "flip": v["flip_masked"]} for k, v in images.items()}}
+    result = {"arm": name, "overrides": overrides, "budget": budget, "train_minutes": minutes, "maps": maps,
+              "images": {k: {"psnr": v["psnr_srgb_masked"], "flip": v["flip_masked"]} for k, v in images.items()}}
+    write_json(saved, result)
+    return result
 
 
 def main() -> None:

@@ -34,6 +34,7 @@ optimiser state).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import time
@@ -301,10 +302,14 @@ def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitCon
     term, z_da moves beside them.
 
     A step whose latent gives an empty shape is undone and the step size halved (logged), so a fit
-    never stops on a shape with nothing to project.
+    never stops on a shape with nothing to project. Phase (b) moves a copy of the decoder: the
+    caller's prior stays as trained (one prior serves many fits).
     """
     from ngp_mi.pipeline import latent  # the one rule of seeded latents
 
+    if config.fit_decoder:
+        shape_model = copy.deepcopy(shape_model)
+        trained = [p.detach().clone() for p in shape_model.decoder.parameters()]
     for p in shape_model.parameters():
         p.requires_grad_(False)  # only z_s moves (and the decoder in phase (b))
     decoder = list(shape_model.decoder.parameters()) if config.fit_decoder else []
@@ -378,6 +383,8 @@ def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitCon
                              "chamfer_zs_start": chamfer_zs_start,  # the best latent's shape, before z_s moved
                              "zs_end_step": end_step,
                              "decoder_fitted": bool(decoder),
+                             **({"decoder_moved_by": max(float((p - t).abs().max()) for p, t in zip(decoder, trained))}
+                                if decoder else {}),
                              **({"z_da": image_term.z_da.detach()[0].tolist()} if image_term is not None else {})}
 
 

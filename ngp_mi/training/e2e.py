@@ -12,6 +12,10 @@ flows back through the networks into the depth maps, through Π_v into the verti
 iso-surface link into the decoder, which an Adam step at ``decoder_lr`` moves; the discriminators
 see detached fakes, as in ``train maps``. G_latent and the encoder stay as trained.
 
+``shape_anchor = λ > 0`` adds λ times the prior's own autoencoder loss on its training shapes to
+each decoder step (:class:`ShapeAnchor`), so the 2-D losses move the decoder only where the shape
+data lets them; 0 (the default) is the plain link.
+
 ``link = false`` is the control at an equal budget: the same shapes, cameras and map-network steps
 with the vertices detached, so the decoder never moves (training "separately", on G_shape's depth).
 
@@ -39,11 +43,12 @@ from ngp_mi.camera import ViewDistribution
 from ngp_mi.data.datasets import ReflectanceMapDataset
 from ngp_mi.data.views import derived_seed
 from ngp_mi.models.maps import MapsModel
-from ngp_mi.models.shape import ShapeModel
+from ngp_mi.models.shape import ShapeModel, occupancy_loss
 from ngp_mi.render.depth import depth_of_hits, project_depth
 from ngp_mi.training import loop
 from ngp_mi.training.maps import MapsData, image_grid, prepare_data
 from ngp_mi.training.recipe import from_table, out_override, positive, read_tables, record
+from ngp_mi.training.shape import ae_batch, run_shape_data
 from ngp_mi.viz import save_png
 
 TABLES = ("init", "data", "train")
@@ -63,6 +68,8 @@ class E2ETrain:
     out: str = "outputs/train/e2e"
     link: bool = True  # false: the control, vertices detached (the decoder never moves)
     decoder_lr: float = 1e-5
+    shape_anchor: float = 0.0  # weight of the prior's own occupancy loss at each decoder step (0: off)
+    anchor_batch: int = 8  # training shapes of the prior per anchor term
     extract_resolution: int = 32  # marching-cubes grid of G_shape(z_s) per step
     spp: int = 4  # Π_v samples per pixel, and of its silhouette term
     boundary_spp: int = 1
@@ -73,7 +80,9 @@ class E2ETrain:
 
     def __post_init__(self) -> None:
         positive(self, "iterations", "batch_size", "extract_resolution", "spp", "boundary_spp", "log_every",
-                 "image_every", "checkpoint_every")
+                 "image_every", "checkpoint_every", "anchor_batch")
+        if not self.shape_anchor >= 0:
+            raise ValueError(f"shape_anchor must be >= 0, got {self.shape_anchor}")
         if not self.decoder_lr > 0:
             raise ValueError(f"decoder_lr must be > 0, got {self.decoder_lr}")
 
@@ -119,6 +128,33 @@ def shape_depth_batch(shape: ShapeModel, batch: int, resolution: int, seed: int,
                       "K": torch.tensor(camera.K, dtype=torch.float32), "E": torch.tensor(camera.E, dtype=torch.float32),
                       "bounds": torch.tensor(np.stack([corners.min(0), corners.max(0)]), dtype=torch.float32)})
     return {key: torch.stack([item[key] for item in items]) for key in items[0]}, empty
+
+
+class ShapeAnchor:
+    """The anchor term λ_anchor · L_occ: the autoencoder's occupancy loss (IM-NET Eq. 2,
+    :func:`~ngp_mi.models.shape.occupancy_loss`) of decoder(encoder(v), p) on the prior's own
+    training shapes, added to L_2D's gradient at each decoder step.
+
+    Without it nothing in the link ties the decoder to the shape data, and the 2-D losses pull the
+    prior off its shapes (``bench/RESULTS.md``, bench_e2e). The encoder stays fixed, so the codes G_latent
+    learned to generate keep their meaning; points are drawn at the prior's finest stage."""
+
+    def __init__(self, shape_run: str | Path, weight: float, batch: int, seed: int, rank: int, world: int,
+                 device: torch.device):
+        recipe, self.data, _ = run_shape_data(shape_run)
+        self.weight, self.device = weight, device
+        self.resolution = recipe.train.stages[-1][0]
+        self.points = recipe.train.points_per_shape
+        self.batches = loop.SeededBatches(self.data, batch, seed, rank, world, repeat=True)
+
+    def backward(self, shape: ShapeModel, step: int) -> float:
+        """Adds λ ∇L_occ of ``step``'s batch to the decoder's gradients; returns L_occ."""
+        voxels, points, occ = ae_batch(self.data, self.batches, self.resolution, step, self.points, self.device)
+        with torch.no_grad():
+            codes = shape.encoder(voxels)
+        loss = occupancy_loss(shape.decoder(points, codes), occ)
+        (self.weight * loss).backward()
+        return loss.item()
 
 
 def _decoder_step(shape: ShapeModel, world: int) -> bool:
@@ -167,6 +203,11 @@ def train_e2e(config_path: str | Path, log=print, out: str | Path | None = None,
         record(out, config_path, overrides, recipe.tables)
     if world > 1:
         model.gradient_hook = loop.average_gradients
+    anchor = (ShapeAnchor(recipe.init.shape_run, train.shape_anchor, train.anchor_batch, train.seed, rank, world, device)
+              if train.link and train.shape_anchor > 0 else None)
+    if anchor is not None and rank == 0:
+        log(f"train e2e: anchored to {len(anchor.data)} training shapes of {recipe.init.shape_run} "
+            f"(weight {train.shape_anchor})")
 
     log_file = loop.JsonLog(out, step) if rank == 0 else None
     bar = tqdm(total=train.iterations, initial=step, unit="it", disable=rank != 0, desc="train e2e")
@@ -178,6 +219,8 @@ def train_e2e(config_path: str | Path, log=print, out: str | Path | None = None,
                                                    derived_seed(train.seed, step * world + rank), train.link, train)
         empty += empty_now
         losses = model.optimize(loop.to_device(depth_batch, device), loop.to_device(maps_batches(step), device))
+        if anchor is not None:
+            losses["anchor_occupancy"] = anchor.backward(shape, step)
         if train.link and not _decoder_step(shape, world):
             skipped += 1
             log(f"train e2e: step {step}: a non-finite gradient in the decoder; its step skipped")

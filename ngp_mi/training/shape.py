@@ -125,6 +125,29 @@ def ae_batch(data: ShapeDataset, batches: loop.SeededBatches, resolution: int, s
     return tuple(torch.stack(t).to(device) for t in (voxels, pts, occ))
 
 
+def run_shape_data(run: str | Path) -> tuple[ShapeRecipe, ShapeDataset, ShapeDataset | None]:
+    """A ``train shape`` run's recipe and its training and held-out shapes (the split it trained with),
+    read from the run's ``recipe.json`` and data cache."""
+    run = Path(run)
+    try:
+        tables = json.loads((run / "recipe.json").read_text())["tables"]
+    except (OSError, ValueError, KeyError) as exc:
+        raise ValueError(f"{run}: not a `train shape` run (recipe.json: {exc})") from None
+    data, cache = from_table(tables, "data", run / "recipe.json", ShapeDataConfig, ShapeCache)
+    (train,) = from_table(tables, "train", run / "recipe.json", ShapeTrain)
+    model_table = {"voxel_resolution": data.voxel_resolution, **tables.get("model", {})}
+    (model,) = from_table({"model": model_table}, "model", run / "recipe.json", ShapeConfig)
+    try:
+        ids = [r["id"] for r in ShapeDataset.index(cache.cache_dir)]
+    except FileNotFoundError:
+        raise ValueError(f"{run}: its shape data {cache.cache_dir} is missing (`train shape` with the run's "
+                         "recipe rebuilds it)") from None
+    train_ids, held_ids = split_ids(ids, cache.held_out)
+    recipe = ShapeRecipe(data, cache, model, train, tables)
+    return recipe, ShapeDataset(cache.cache_dir, ids=train_ids), (ShapeDataset(cache.cache_dir, ids=held_ids)
+                                                                   if held_ids else None)
+
+
 def autoencoder_iou(model: ShapeModel, data: ShapeDataset, resolution: int) -> float:
     """Mean voxel IoU of decode(encode(voxels)) against the voxels, at the voxel grid's cell centres."""
     if data.config["voxel_resolution"] != resolution:

@@ -1,6 +1,7 @@
 """ngp-mi train e2e: L_2D reaches G_shape's decoder through Π_v (and not with the link off), outputs,
 exact resume, and two processes with gloo."""
 
+import copy
 import json
 from pathlib import Path
 
@@ -8,8 +9,9 @@ import pytest
 import torch
 from helpers import ROOT, run_torchrun
 
-from ngp_mi.models.shape import ShapeModel
-from ngp_mi.training.e2e import E2ETrain, shape_depth_batch, train_e2e
+from ngp_mi.models.shape import ShapeModel, occupancy_loss
+from ngp_mi.training.e2e import E2ETrain, ShapeAnchor, shape_depth_batch, train_e2e
+from ngp_mi.training.shape import run_shape_data
 
 
 def e2e_recipe(tmp_path: Path, runs, name: str, **train) -> Path:
@@ -21,7 +23,10 @@ def e2e_recipe(tmp_path: Path, runs, name: str, **train) -> Path:
     text = text.replace('"outputs/data/maps_tiny"', f'"{Path(maps_run).parent / "data"}"')
     text = text.replace('"outputs/train/e2e_tiny"', f'"{tmp_path / name}"')
     for key, value in train.items():
-        text = text.replace(f"\n{key} = ", f"\n{key} = {value}\n# ", 1)
+        if f"\n{key} = " in text:
+            text = text.replace(f"\n{key} = ", f"\n{key} = {value}\n# ", 1)
+        else:
+            text = text.replace("\n[train]\n", f"\n[train]\n{key} = {value}\n", 1)
     path = tmp_path / f"{name}.toml"
     path.write_text(text)
     return path
@@ -74,6 +79,67 @@ def test_the_decoder_moves_with_the_link_and_stays_without_it(runs, tmp_path):
     # to its learning rate, a quarter of that)
     moved_by = max(float((moved[k] - before[k]).abs().max()) for k in moved)
     assert max(float((again[k] - moved[k]).abs().max()) for k in moved) < 1e-2 * moved_by
+
+
+def test_the_anchor_adds_the_weighted_occupancy_gradient_of_the_priors_training_shapes(runs):
+    shape = ShapeModel.from_run(runs[1])
+    recipe, train_shapes, held = run_shape_data(runs[1])
+    anchor = ShapeAnchor(runs[1], weight=3.0, batch=2, seed=0, rank=0, world=1, device=torch.device("cpu"))
+    assert len(anchor.data) == len(train_shapes) and anchor.resolution == recipe.train.stages[-1][0]
+    assert held is None or not set(held.ids) & set(anchor.data.ids)  # never the held-out shapes
+    shape.zero_grad(set_to_none=True)
+    torch.manual_seed(7)  # the points' subset comes from the global generator, as in `train shape`
+    loss = anchor.backward(shape, step=5)
+    assert loss > 0 and all(p.grad is None for p in shape.encoder.parameters())  # the encoder stays fixed
+    gradient = {name: p.grad.clone() for name, p in shape.decoder.named_parameters()}
+    assert any(g.abs().sum() > 0 for g in gradient.values())
+
+    # an independent check: the directional finite difference of 3 · L_occ on the same batch
+    from ngp_mi.training.shape import ae_batch
+
+    torch.manual_seed(7)
+    voxels, points, occ = ae_batch(anchor.data, anchor.batches, anchor.resolution, 5, anchor.points, torch.device("cpu"))
+    # in float64 (a copy of the decoder), so the difference quotient is not rounding
+    decoder64 = copy.deepcopy(shape.decoder).double()
+    codes, points, occ = shape.encoder(voxels).detach().double(), points.double(), occ.double()
+    parameters = dict(decoder64.named_parameters())
+    direction = {name: torch.randn(p.shape, generator=torch.Generator().manual_seed(i), dtype=torch.float64)
+                 for i, (name, p) in enumerate(parameters.items())}
+
+    def weighted(t: float) -> float:
+        with torch.no_grad():
+            for name, p in parameters.items():
+                p.add_(t * direction[name])
+            value = 3.0 * occupancy_loss(decoder64(points, codes), occ).item()
+            for name, p in parameters.items():
+                p.sub_(t * direction[name])
+        return value
+
+    h = 1e-5
+    numeric = (weighted(h) - weighted(-h)) / (2 * h)
+    analytic = sum(float((gradient[name].double() * direction[name]).sum()) for name in parameters)
+    assert numeric == pytest.approx(analytic, rel=2e-2, abs=1e-6)
+
+
+def test_an_anchored_run_logs_its_term_and_a_control_has_none(runs, tmp_path):
+    anchored = train_e2e(e2e_recipe(tmp_path, runs, "anchored", iterations=2, shape_anchor=1.0, device='"cpu"'),
+                         log=lambda *_: None)
+    control = train_e2e(e2e_recipe(tmp_path, runs, "control", iterations=1, shape_anchor=1.0, link="false",
+                                   device='"cpu"'), log=lambda *_: None)
+    records = [json.loads(line) for line in (anchored / "log.jsonl").read_text().splitlines()]
+    assert all(r["anchor_occupancy"] > 0 and r["skipped_decoder_steps"] == 0 for r in records)
+    assert all("anchor_occupancy" not in json.loads(line) for line in (control / "log.jsonl").read_text().splitlines())
+
+
+def test_a_shape_run_without_its_recipe_or_data_is_named(runs, tmp_path):
+    with pytest.raises(ValueError, match=f"{tmp_path}.*not a `train shape` run"):
+        run_shape_data(tmp_path)
+    recipe = json.loads((Path(runs[1]) / "recipe.json").read_text())
+    recipe["tables"]["data"]["cache_dir"] = str(tmp_path / "gone")
+    (tmp_path / "moved").mkdir()
+    (tmp_path / "moved" / "recipe.json").write_text(json.dumps(recipe))
+    with pytest.raises(ValueError, match="gone.*missing"):
+        run_shape_data(tmp_path / "moved")
 
 
 def test_a_run_that_does_not_exist_is_named(runs, tmp_path):
