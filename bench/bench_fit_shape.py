@@ -59,6 +59,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=150)
     parser.add_argument("--model", help="a shipped model or model folder: adds the fits from its shape prior")
     parser.add_argument("--only", default="", help="comma-separated indices of the settings to run (default: all)")
+    parser.add_argument("--image-downsample", type=int, default=1,
+                        help="the image term at 1/K of --res (the settings with the networks in the loop)")
     parser.add_argument("--user-meshes", action="store_true",
                         help="fit the two meshes of user_meshes() (a swivel chair, a stool) instead of chairs")
     parser.add_argument("--out", default="outputs/bench/fit")
@@ -87,7 +89,8 @@ def main() -> None:
         results = []
         for k, shape_id in enumerate(shape_ids):
             config = FitConfig(str(targets), shape_id=shape_id, held_out=4,
-                               **{"steps": args.steps, "checkpoint_every": max(1, args.steps), **fields})
+                               **{"steps": args.steps, "checkpoint_every": max(1, args.steps), **fields,
+                                  **({"image_downsample": args.image_downsample} if networks else {})})
             folder = out / f"{index}-{k}"
             start = time.perf_counter()
             summary = fit_shape(config, folder, ngp.shape_model if ngp else None, ngp if networks else None,
@@ -101,7 +104,7 @@ def main() -> None:
     _plot(curves, out / "curves.png")
     print(f"# bench_fit_shape — {time.strftime('%Y-%m-%d')}, {platform.machine()}, torch {torch.__version__} "
           f"({torch.get_num_threads()} threads); {', '.join(shape_ids) if args.user_meshes else f'{num_shapes} chairs from seed {args.seed}'}, "
-          f"8 + 4 held-out views at {args.res}², "
+          f"8 + 4 held-out views at {args.res}² (image term at {args.res // args.image_downsample}²), "
           f"{args.steps} vertex steps{f', model {args.model}' if args.model else ''}\n")
     print("| setting | Chamfer-L2 start | Chamfer-L2 end (per chair) | held-out mask IoU | held-out PSNR / FLIP "
           "start → end | s / step |\n|---|---|---|---|---|---|")
@@ -117,7 +120,7 @@ def main() -> None:
               f"{statistics.median(r['seconds_per_step'] for r in results):.3f} |")
     print(f"\ncurves: {out / 'curves.png'}")
     if ngp is not None:
-        print("\n" + step_split(ngp, targets, args.seed))
+        print("\n" + step_split(ngp, targets, shape_ids[0], args.image_downsample))
 
 
 def user_meshes(folder: Path) -> Path:
@@ -161,18 +164,18 @@ def user_meshes(folder: Path) -> Path:
     return folder
 
 
-def step_split(ngp, targets: Path, seed: int, repeats: int = 5) -> str:
+def step_split(ngp, targets: Path, shape_id: str, downsample: int = 1, repeats: int = 5) -> str:
     """Median seconds per step of the parts of one image-term step of the vertex phase (8 views, each
-    network part summed over them), as a table."""
+    network part summed over them; the networks at 1/``downsample`` of the resolution), as a table."""
     import numpy as np
 
-    from ngp_mi.commands.fit_shape import ImageTerm, fit_losses, load_targets
-    from ngp_mi.geometry.families import generate
+    from ngp_mi.commands.fit_shape import ImageTerm, _source_mesh, fit_losses, load_targets, pool_views
     from ngp_mi.render.depth import depth_of_hits, project_depth
 
-    data = load_targets(targets, f"chair/{seed:06d}")
+    data = load_targets(targets, shape_id)
     cams, fitted = data.cameras[:8], slice(0, 8)
-    mesh = generate("chair", seed).mesh()
+    small = [c.with_resolution(c.width // downsample, c.height // downsample) for c in cams]
+    mesh = _source_mesh(data.record)
     term = ImageTerm(ngp, "ngp" if ngp.specular is not None else "no_sp",
                      torch.zeros(1, ngp.maps.config.latent_dim, requires_grad=True))
     for module in (ngp.maps, ngp.specular):
@@ -195,9 +198,10 @@ def step_split(ngp, targets: Path, seed: int, repeats: int = 5) -> str:
     for step in range(repeats + 1):
         maps = timed("Π_v forward (silhouette, spp 8 / 2)", lambda: project_depth(vertices, mesh.faces, cams,
                                                                                  silhouette_grad=True))
-        hits, coverage = depth_of_hits(maps.depth, maps.mask), maps.mask
+        coverage = pool_views(maps.mask, downsample)
+        hits = depth_of_hits(pool_views(maps.depth, downsample), coverage)
         images = []
-        for i, camera in enumerate(cams):
+        for i, camera in enumerate(small):
             d, c = hits[i:i + 1], coverage[i:i + 1]
             normal = timed("G_n forward", lambda: generate_normals(ngp.maps, d, c, camera))
             albedo = timed("G_da forward", lambda: generate_albedo(ngp.maps, d, c, camera, bounds, normal, term.z_da))
@@ -208,7 +212,7 @@ def step_split(ngp, targets: Path, seed: int, repeats: int = 5) -> str:
                                                                                     albedo, c, camera))
             images.append(image)
         terms = fit_losses(maps.mask, maps.depth, data.mask[fitted], data.depth[fitted], 1.0, 0.0,
-                           torch.cat(images), data.images[fitted], 1.0)
+                           torch.cat(images), pool_views(data.images[fitted], downsample), 1.0)
         optimizer.zero_grad()
         timed("backward (networks, shading, Π_v)", lambda: terms["total"].backward())
         timed("optimiser", optimizer.step)

@@ -379,6 +379,9 @@ def fit_shape_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--image-weight", type=float, default=default(FitConfig, "image_weight"),
                    help="weight of the image L1 (linear radiance) through NGP's networks; needs --model or "
                         "--maps-run and path-traced targets (default: %(default)s)")
+    p.add_argument("--image-downsample", type=at_least(1), default=default(FitConfig, "image_downsample"),
+                   help="the image term at 1/K of the targets' resolution, e.g. 2 for 128-px targets and "
+                        "networks trained at 64 px: 1/4 of their cost (default: %(default)s)")
     p.add_argument("--format", choices=["obj", "ply"], default=default(FitConfig, "mesh_format"),
                    help="of the fitted mesh (default: %(default)s)")
     p.add_argument("--no-silhouette", action="store_true", help="interior gradients only (the fast Π_v)")
@@ -394,7 +397,8 @@ def fit_shape(args: argparse.Namespace) -> int:
                        lr=args.lr, lam=args.lam, start=args.start, mask_weight=args.mask_weight,
                        depth_weight=args.depth_weight, silhouette=not args.no_silhouette, spp=args.spp,
                        boundary_spp=args.boundary_spp, zs_steps=args.zs_steps, image_weight=args.image_weight,
-                       fit_decoder=args.fit_decoder, decoder_lr=args.decoder_lr, mesh_format=args.format)
+                       fit_decoder=args.fit_decoder, decoder_lr=args.decoder_lr, mesh_format=args.format,
+                       image_downsample=args.image_downsample)
     from ngp_mi.models.shape import ShapeModel
     from ngp_mi.pipeline import NGP
 

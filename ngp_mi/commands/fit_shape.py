@@ -82,6 +82,7 @@ class FitConfig:
     depth_weight: float = 1.0
     image_weight: float = 1.0  # with map networks (--model) and path-traced targets; else off
     zda_lr: float = 5e-2  # Adam's step for the appearance code z_da, fitted with the image term
+    image_downsample: int = 1  # the image term at 1/k of the targets' resolution (Π_v's maps pooled k × k)
     silhouette: bool = True  # silhouette gradients (else the fast Π_v: interior gradients only)
     spp: int = 8
     boundary_spp: int = 2
@@ -91,7 +92,7 @@ class FitConfig:
     retries: int = 3  # undone steps in a row (step size halved each time) before a fit gives up
 
     def __post_init__(self) -> None:
-        for name in ("spp", "boundary_spp", "checkpoint_every", "frame_every"):
+        for name in ("spp", "boundary_spp", "checkpoint_every", "frame_every", "image_downsample"):
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
         if self.steps < (0 if self.start == "zs" else 1):
@@ -247,16 +248,29 @@ class ImageTerm:
 
 
 def fit_images(term: ImageTerm, depth: torch.Tensor, coverage: torch.Tensor, cameras: list[Camera],
-               bounds: np.ndarray, lights: list[list[Light]]) -> torch.Tensor:
-    """NGP's image (N, 3, H, W) of each view from Π_v's pixel-averaged depth d̄ and coverage c, with
-    gradients into both and into z_da: the networks read the depth d̄ / c of the covered samples
+               bounds: np.ndarray, lights: list[list[Light]], downsample: int = 1) -> torch.Tensor:
+    """NGP's image (N, 3, H / k, W / k) of each view from Π_v's pixel-averaged depth d̄ and coverage c,
+    with gradients into both and into z_da: the networks read the depth d̄ / c of the covered samples
     and take c as the mask (:func:`ngp_mi.pipeline.ngp_image`, which weights the image by it), so
-    the silhouette gradients reach the image too."""
+    the silhouette gradients reach the image too.
+
+    ``downsample`` k > 1 forms the image at 1/k of the resolution from d̄ and c average-pooled k × k —
+    exactly Π_v's pixel averages at the lower resolution with k² times the samples — for networks
+    trained at that resolution, at 1/k² of their cost."""
     from ngp_mi.pipeline import ngp_image  # the image formation of the paper, one stage per function
 
+    if downsample > 1:
+        depth, coverage = pool_views(depth, downsample), pool_views(coverage, downsample)
+        cameras = [c.with_resolution(c.width // downsample, c.height // downsample) for c in cameras]
     hits, maps = depth_of_hits(depth, coverage), term.ngp.maps
     return torch.cat([ngp_image(maps, term.ngp.specular, hits[i:i + 1], coverage[i:i + 1], camera, bounds,
                                 term.z_da, lights[i], term.variant)["image"] for i, camera in enumerate(cameras)])
+
+
+def pool_views(views: torch.Tensor, k: int) -> torch.Tensor:
+    """(N, C, H, W) averaged over k × k pixel blocks: a pixel average of pixel averages (a box filter,
+    right for coverage, d̄ and linear radiance alike)."""
+    return views if k == 1 else torch.nn.functional.avg_pool2d(views, k)
 
 
 def _source_mesh(record: dict[str, Any]) -> TriangleMesh | None:
@@ -288,8 +302,8 @@ def _step_losses(vertices: torch.Tensor, faces: np.ndarray, targets: Targets, fi
     if image_term is not None:
         corners = vertices.detach().numpy()
         image = fit_images(image_term, maps.depth, maps.mask, targets.cameras[fitted],
-                           np.stack([corners.min(0), corners.max(0)]), targets.lights[fitted])
-        target_image = targets.images[fitted]
+                           np.stack([corners.min(0), corners.max(0)]), targets.lights[fitted], config.image_downsample)
+        target_image = pool_views(targets.images[fitted], config.image_downsample)
     target_depth = targets.depth[fitted] if targets.depth is not None else None
     return maps, fit_losses(maps.mask, maps.depth, targets.mask[fitted], target_depth, config.mask_weight,
                             config.depth_weight, image, target_image, config.image_weight)
@@ -423,6 +437,10 @@ def fit_shape(config: FitConfig, out: str | Path, shape_model: Any = None, ngp: 
     if targets.depth is None and config.depth_weight:
         log("fit-shape: the targets have no depths (the user's own images): the depth term is off")
     n = len(targets.cameras)
+    k = config.image_downsample
+    if image_term is not None and any(c.width % k or c.height % k for c in targets.cameras):
+        raise ValueError(f"--image-downsample {k} does not divide the targets' resolution "
+                         f"{targets.cameras[0].width}×{targets.cameras[0].height} ({config.targets})")
     if not 0 <= config.held_out < n:
         raise ValueError(f"--held-out {config.held_out}: the shape has {n} views; keep at least one to fit")
     fitted = slice(0, n - config.held_out)
@@ -580,15 +598,18 @@ def _finish(config: FitConfig, out: Path, targets: Targets, param: LargeSteps, u
     if image_term is not None:
         with torch.no_grad():
             z_fit = image_term.z_da.detach()
+            k = config.image_downsample  # scored where it was fitted
             images = {"start": fit_images(dataclasses.replace(image_term, z_da=torch.zeros_like(z_fit)),
                                           start_maps.depth, start_maps.mask, targets.cameras, start.bounds,
-                                          targets.lights),
+                                          targets.lights, k),
                       "end": fit_images(dataclasses.replace(image_term, z_da=z_fit), maps.depth, maps.mask,
-                                        targets.cameras, mesh.bounds, targets.lights)}
-        summary.update(image_scores(images, targets.images, fitted), variant=image_term.variant,
-                       z_da=z_fit[0].tolist())
+                                        targets.cameras, mesh.bounds, targets.lights, k)}
+            target_images = pool_views(targets.images, k)
+        summary.update(image_scores(images, target_images, fitted), variant=image_term.variant,
+                       z_da=z_fit[0].tolist(), image_resolution=list(target_images.shape[-2:]))
+        tile = lambda x: np.repeat(np.repeat(chw_to_uint8(x), k, 0), k, 1)  # noqa: E731  (the sheet's tile size)
         for i, row in enumerate(rows):
-            row += [chw_to_uint8(targets.images[i]), chw_to_uint8(images["start"][i]), chw_to_uint8(images["end"][i])]
+            row += [tile(target_images[i]), tile(images["start"][i]), tile(images["end"][i])]
         columns += ["target image", f"NGP ({image_term.variant}), start", "NGP, fitted"]
     save_png(out / "sheet.png", labelled_grid(rows, [f"view {i}{' (held out)' if i >= fitted else ''}, IoU {ious[i]:.3f}"
                                                      for i in range(n)], columns))

@@ -58,6 +58,30 @@ def test_the_image_term_goes_through_the_networks_and_fits_z_da(chair_images, ti
     assert any("no image term (no map networks" in m for m in messages)
 
 
+def test_the_image_term_at_half_resolution_pools_the_projection(chair_images, tiny_ngp, tmp_path):
+    from ngp_mi.commands.fit_shape import pool_views
+    from ngp_mi.render.depth import project_depth
+
+    targets = load_targets(chair_images)
+    chair = trimesh.creation.box((0.5, 0.8, 0.5))  # the check needs a shape, not the chair itself
+    vertices = torch.as_tensor(chair.vertices, dtype=torch.float32)
+    fine = project_depth(vertices, chair.faces, targets.cameras[:2], spp=16, silhouette_grad=True)
+    coarse = project_depth(vertices, chair.faces, [c.with_resolution(16) for c in targets.cameras[:2]], spp=64,
+                           silhouette_grad=True)
+    # 2 × 2 pooling of the 32² pixel averages is the 16² pixel average (with 4 × the samples): 0.005
+    # here, sampling noise; a max-pool would be 0.03
+    assert float((pool_views(fine.mask, 2) - coarse.mask).abs().mean()) < 0.012
+    assert float((pool_views(fine.depth, 2) - coarse.depth).abs().mean()) < 0.012 * float(coarse.depth.max())
+
+    config = FitConfig(str(chair_images), held_out=1, steps=3, sphere_subdivisions=2, image_downsample=2)
+    summary = fit_shape(config, tmp_path, ngp=tiny_ngp, log=lambda *_: None)
+    assert summary["image_resolution"] == [16, 16] and np.isfinite(summary["psnr_held_out_end"])
+    history = json.loads((tmp_path / "state" / "state.json").read_text())["history"]
+    assert all(np.isfinite(h["image"]) and h["image"] > 0 for h in history)
+    with pytest.raises(ValueError, match="--image-downsample 3 does not divide the targets' resolution 32"):
+        fit_shape(dataclasses.replace(config, image_downsample=3), tmp_path / "bad", ngp=tiny_ngp, log=lambda *_: None)
+
+
 def test_the_image_chain_matches_finite_differences(tiny_ngp):
     """Depth and coverage of Π_v → G_n, G_da(z_da) → R_diff (Dr.Jit) → a weighted sum of the image:
     the gradient in the depth, the coverage and z_da against central differences. Smooth directions:
