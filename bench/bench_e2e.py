@@ -93,7 +93,7 @@ def main() -> None:
               "control: link = false": (args.control, f"{args.control}/shape"),
               "end to end: link = true": (args.link, f"{args.link}/shape")}
     for arm in args.arm:
-        name, _, folder = arm.partition("=")
+        name, _, folder = arm.rpartition("=")  # a name may hold "=", a folder does not
         if not Path(folder).is_dir():
             raise SystemExit(f"bench_e2e: --arm {arm}: no such folder {folder}")
         states[name] = (folder, f"{folder}/shape")
