@@ -97,6 +97,8 @@ def main() -> None:
                                 log=lambda *_: None)
             steps = config.steps + (config.zs_steps if config.start == "zs" else 0)
             summary["seconds_per_step"] = (time.perf_counter() - start) / steps
+            if networks and "zs_seed" in summary:
+                summary.update(prior_start_images(ngp, summary, targets))
             results.append(summary)
             if k == 0 and config.steps:
                 curves[name] = json.loads((folder / "state" / "state.json").read_text())["history"]
@@ -113,6 +115,8 @@ def main() -> None:
         image = (f"{mean('psnr_held_out_start'):.2f} / {mean('flip_held_out_start'):.3f} → "
                  f"{mean('psnr_held_out_end'):.2f} / {mean('flip_held_out_end'):.3f}"
                  if "psnr_held_out_end" in results[0] else "–")
+        if "psnr_held_out_prior" in results[0]:  # from the prior's best latent, as the goal counts
+            image = f"{mean('psnr_held_out_prior'):.2f} / {mean('flip_held_out_prior'):.3f} → (after (a)) " + image
         ends = ", ".join(f"{r['chamfer_end']:.4f}" for r in results)
         start_key = "chamfer_zs_start" if results[0].get("chamfer_zs_start") is not None else "chamfer_start"
         print(f"| {name} | {mean(start_key):.4f} | {ends} "
@@ -121,6 +125,26 @@ def main() -> None:
     print(f"\ncurves: {out / 'curves.png'}")
     if ngp is not None:
         print("\n" + step_split(ngp, targets, shape_ids[0], args.image_downsample))
+
+
+def prior_start_images(ngp, summary: dict, targets: Path) -> dict[str, float]:
+    """The image scores of the fit's first shape — the prior's best latent before z_s moved, z_da = 0,
+    the start the goal table measures from — on the same views and at the same resolution as the
+    fit's own ``psnr_*`` / ``flip_*`` (whose "start" is the vertex phase's, after z_s was fitted)."""
+    from ngp_mi.commands.fit_shape import ImageTerm, fit_images, image_scores, load_targets, pool_views
+    from ngp_mi.pipeline import latent
+    from ngp_mi.render.depth import project_depth
+
+    config = summary["config"]
+    data = load_targets(targets, summary["shape_id"])
+    shape = ngp.shape_model.shape(latent(summary["zs_seed"], ngp.shape_model.config.z_dim),
+                                  resolution=config["extract_resolution"]).mesh
+    with torch.no_grad():
+        maps = project_depth(torch.as_tensor(shape.vertices, dtype=torch.float32), shape.faces, data.cameras)
+        term = ImageTerm(ngp, summary["variant"], torch.zeros(1, ngp.maps.config.latent_dim))
+        k = config["image_downsample"]
+        image = fit_images(term, maps.depth, maps.mask, data.cameras, shape.bounds, data.lights, k)
+    return image_scores({"prior": image}, pool_views(data.images, k), summary["fitted_views"])
 
 
 def user_meshes(folder: Path) -> Path:
