@@ -370,8 +370,9 @@ def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitCon
         optimizer.zero_grad(set_to_none=True)
         terms["total"].backward()
         previous = [p.detach().clone() for p in moving]
-        if float(terms["total"]) < best_total:
-            best_total, best, best_step = float(terms["total"]), previous, step + 1
+        total = float(terms["total"].detach())
+        if total < best_total:
+            best_total, best, best_step = total, previous, step + 1
         if all(p.grad is None or torch.isfinite(p.grad).all() for p in moving):
             optimizer.step()
         else:
