@@ -83,6 +83,11 @@ class ShapeRecipe:
     @classmethod
     def read(cls, path: str | Path, overrides: Sequence[str] = ()) -> "ShapeRecipe":
         tables = read_tables(path, overrides, required=("data", "model", "train"), known=("data", "model", "train"))
+        return cls.from_tables(tables, path)
+
+    @classmethod
+    def from_tables(cls, tables: dict[str, Any], path: str | Path) -> "ShapeRecipe":
+        """The recipe of parsed tables (a file's, or a run's ``recipe.json``); errors name ``path``."""
         data, cache = from_table(tables, "data", path, ShapeDataConfig, ShapeCache)
         (train,) = from_table(tables, "train", path, ShapeTrain)
         for resolution, _ in train.stages:
@@ -133,17 +138,14 @@ def run_shape_data(run: str | Path) -> tuple[ShapeRecipe, ShapeDataset, ShapeDat
         tables = json.loads((run / "recipe.json").read_text())["tables"]
     except (OSError, ValueError, KeyError) as exc:
         raise ValueError(f"{run}: not a `train shape` run (recipe.json: {exc})") from None
-    data, cache = from_table(tables, "data", run / "recipe.json", ShapeDataConfig, ShapeCache)
-    (train,) = from_table(tables, "train", run / "recipe.json", ShapeTrain)
-    model_table = {"voxel_resolution": data.voxel_resolution, **tables.get("model", {})}
-    (model,) = from_table({"model": model_table}, "model", run / "recipe.json", ShapeConfig)
+    recipe = ShapeRecipe.from_tables(tables, run / "recipe.json")
+    cache = recipe.cache
     try:
         ids = [r["id"] for r in ShapeDataset.index(cache.cache_dir)]
     except FileNotFoundError:
         raise ValueError(f"{run}: its shape data {cache.cache_dir} is missing (`train shape` with the run's "
                          "recipe rebuilds it)") from None
     train_ids, held_ids = split_ids(ids, cache.held_out)
-    recipe = ShapeRecipe(data, cache, model, train, tables)
     return recipe, ShapeDataset(cache.cache_dir, ids=train_ids), (ShapeDataset(cache.cache_dir, ids=held_ids)
                                                                    if held_ids else None)
 
