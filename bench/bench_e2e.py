@@ -36,6 +36,7 @@ import numpy as np
 import torch
 
 from ngp_mi.camera import Camera
+from ngp_mi.data.shapes import ShapeDataset
 from ngp_mi.eval.maps_eval import evaluate_maps
 from ngp_mi.lights import overhead_rig
 from ngp_mi.models.maps import MapsModel
@@ -45,14 +46,10 @@ from ngp_mi.training.shape import autoencoder_iou, run_shape_data, sample_metric
 from ngp_mi.viz import chw_to_uint8, labelled_grid, save_png
 
 
-def shape_figures(run: str | Path, base_shape: str | Path) -> dict[str, float]:
-    """Autoencoder IoU on the held-out shapes and COV / MMD of 64 samples, as `train shape` reports them
-    (the shapes and split of ``base_shape``, the run the arms start from)."""
-    model = ShapeModel.from_run(run)
-    _, train, held = run_shape_data(base_shape)
-    if held is None:
-        raise ValueError(f"{base_shape}: trained without held-out shapes; no autoencoder IoU to compare")
-    samples = sample_metrics(model, [train.surface(i) for i in range(len(train))], [], 64, 64, seed=1)
+def shape_figures(model: ShapeModel, reference: list[np.ndarray], held: ShapeDataset) -> dict[str, float]:
+    """Autoencoder IoU on the held-out shapes and COV / MMD of 64 samples against the training shapes'
+    surface points ``reference``, as `train shape` reports them."""
+    samples = sample_metrics(model, reference, [], 64, 64, seed=1)
     return {"iou_held_out": autoencoder_iou(model, held, model.config.voxel_resolution),
             "coverage": samples.get("coverage", 0.0), "mmd": samples.get("mmd", float("nan")),
             "empty": samples["empty_samples"]}
@@ -97,12 +94,17 @@ def main() -> None:
         if not Path(folder).is_dir():
             raise SystemExit(f"bench_e2e: --arm {arm}: no such folder {folder}")
         states[name] = (folder, f"{folder}/shape")
+    _, train, held = run_shape_data(args.base_shape)  # the shapes and split of the run the arms start from
+    if held is None:
+        raise SystemExit(f"bench_e2e: {args.base_shape} was trained without held-out shapes; no IoU to compare")
+    reference = [train.surface(i) for i in range(len(train))]
     camera = Camera.orbit(20.0, 35.0, 128)
     rows, images = [], []
     for k, (name, (maps_run, shape_run)) in enumerate(states.items()):
         maps_eval = evaluate_maps(maps_run, args.data, out / f"eval-{k}")
-        shape = shape_figures(shape_run, args.base_shape)
-        ngp = NGP.of(MapsModel.from_run(maps_run), None, ShapeModel.from_run(shape_run))
+        shape_model = ShapeModel.from_run(shape_run)
+        shape = shape_figures(shape_model, reference, held)
+        ngp = NGP.of(MapsModel.from_run(maps_run), None, shape_model)
         images.append(sheet_row(ngp, range(6), camera))
         rows.append((name, maps_eval, shape))
     e2e_train = json.loads((Path(args.link) / "recipe.json").read_text()).get("tables", {}).get("train", {})

@@ -158,7 +158,8 @@ class ShapeAnchor:
 
 
 def _decoder_step(shape: ShapeModel, world: int) -> bool:
-    """The decoder's Adam step on the gradient L_2D left in it; False (and no step) when not finite."""
+    """The decoder's Adam step on the gradient left in it (L_2D's, plus the anchor's when on); False
+    (and no step) when not finite."""
     parameters = list(shape.decoder.parameters())
     for p in parameters:
         if p.grad is None:  # every rank must reduce the same tensors
