@@ -442,6 +442,8 @@ def view(args: argparse.Namespace) -> int:
 def export_model_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--maps-run", required=True, help="a `train maps` output folder")
     p.add_argument("--shape-run", help="a `train shape` output folder (G_shape)")
+    p.add_argument("--shape-from", help="instead of --shape-run: keep G_shape (and its card facts) of this model "
+                                        "folder or shipped name, when only the maps were re-trained")
     p.add_argument("--out", required=True, help="the model folder (ngp_mi/pretrained/NAME to ship it)")
     p.add_argument("--family", default="", help="what the model draws (chair, car, …), for its card")
     p.add_argument("--figures", help="a JSON file of evaluation figures to put on the card")
@@ -452,7 +454,8 @@ def export_model(args: argparse.Namespace) -> int:
     from ngp_mi.models.pretrained import export_model
 
     figures = json.loads(open(args.figures).read()) if args.figures else None
-    out = export_model(args.out, args.maps_run, args.shape_run, family=args.family, figures=figures, notes=args.notes)
+    out = export_model(args.out, args.maps_run, args.shape_run, family=args.family, figures=figures, notes=args.notes,
+                       shape_from=args.shape_from)
     card = json.loads((out / "card.json").read_text())
     total = sum(f["bytes"] for f in card["files"].values())
     print(f"export-model: {out} ({', '.join(card['files'])}; {total / 2 ** 20:.1f} MiB)")

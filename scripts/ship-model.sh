@@ -7,7 +7,8 @@
 #
 # MAP_STEPS / SPECULAR_STEPS cut the `cpu` recipe (6,000 / 1,500) to what the machine's time allows;
 # the card records the steps taken. The shape prior and the map networks share nothing, so they
-# train side by side, one CPU thread each.
+# train side by side, one CPU thread each. SHAPE_FROM=MODEL (a shipped name or a model folder)
+# keeps that model's shape prior and re-trains the maps only.
 set -euo pipefail
 family=${1:?usage: scripts/ship-model.sh chair|car [MAP_STEPS] [SPECULAR_STEPS]}
 map_steps=${2:-6000}
@@ -22,8 +23,14 @@ runs=outputs/train
 held_out=outputs/data/held_out_$family
 mkdir -p "$runs"
 
-OMP_NUM_THREADS=1 "$bin" train shape --config train/shape_cpu.toml --out "$runs/shape_$family" \
-  --set data.source="$family" --set data.cache_dir="outputs/data/shape_$family" &
+if [ -n "${SHAPE_FROM:-}" ]; then
+  shape_args=(--shape-from "$SHAPE_FROM")
+  true &  # nothing to train
+else
+  shape_args=(--shape-run "$runs/shape_$family")
+  OMP_NUM_THREADS=1 "$bin" train shape --config train/shape_cpu.toml --out "$runs/shape_$family" \
+    --set data.source="$family" --set data.cache_dir="outputs/data/shape_$family" &
+fi
 shape=$!
 OMP_NUM_THREADS=1 "$bin" train maps --config train/maps_cpu.toml --out "$runs/maps_$family" \
   --set data.source="$family" --set data.cache_dir="outputs/data/maps_$family" \
@@ -38,6 +45,6 @@ wait "$maps"
 "$bin" evaluate maps --run "$runs/maps_$family" --data "$held_out" --coarse-sigma 2
 "$bin" compare --source "$family" --out "$runs/maps_$family/compare" --num-shapes 3 --views 2 --res 64 \
   --seed 500 --lights rig --maps-checkpoint "$runs/maps_$family"
-"$bin" export-model --maps-run "$runs/maps_$family" --shape-run "$runs/shape_$family" \
+"$bin" export-model --maps-run "$runs/maps_$family" "${shape_args[@]}" \
   --out "ngp_mi/pretrained/$family" --family "$family" \
-  --notes "scripts/ship-model.sh $family $map_steps $specular_steps on $(nproc) CPU cores, $(date -u +%F)"
+  --notes "${SHAPE_FROM:+SHAPE_FROM=$SHAPE_FROM }scripts/ship-model.sh $family $map_steps $specular_steps on $(nproc) CPU cores, $(date -u +%F)"

@@ -89,11 +89,24 @@ def training_seconds(times: list[float]) -> float:
 
 
 def export_model(out: str | Path, maps_run: str | Path, shape_run: str | Path | None = None, family: str = "",
-                 figures: dict[str, Any] | None = None, notes: str = "") -> Path:
-    """Write the inference networks of ``maps_run`` (and ``shape_run``) into the model folder ``out``."""
+                 figures: dict[str, Any] | None = None, notes: str = "",
+                 shape_from: str | Path | None = None) -> Path:
+    """Write the inference networks of ``maps_run`` (and ``shape_run``) into the model folder ``out``.
+
+    ``shape_from`` (a model folder or a shipped name, instead of ``shape_run``) keeps that model's
+    G_shape and its card facts: the map networks and the shape prior train apart, so re-training
+    the maps need not re-train the prior."""
+    if shape_run and shape_from:
+        raise ValueError("export-model: --shape-run or --shape-from, not both")
     out = Path(out)
     maps, specular = MapsModel.from_run(maps_run), SpecularModel.from_run(maps_run)
     shape = ShapeModel.from_run(shape_run) if shape_run else None
+    shape_facts = _run_facts(Path(shape_run)) if shape_run else None
+    if shape_from:
+        *_, shape, kept_card = load_model(shape_from)  # read (and sha-checked) before out is written
+        if shape is None:
+            raise ValueError(f"export-model --shape-from {shape_from}: that model has no G_shape (shape.safetensors)")
+        shape_facts = {**kept_card["shape"], "kept_from": str(resolve(shape_from))}
     out.mkdir(parents=True, exist_ok=True)
     tensors = _tensors(maps, INFERENCE_NETWORKS["maps"], "maps")
     configs: dict[str, Any] = {"maps": maps.config_dict()["maps"]}
@@ -107,8 +120,7 @@ def export_model(out: str | Path, maps_run: str | Path, shape_run: str | Path | 
     for name, data in files.items():
         with atomic_path(out / name) as tmp:
             save_file(data, tmp)
-    card = {"family": family, "configs": configs, "maps": _run_facts(Path(maps_run)),
-            "shape": _run_facts(Path(shape_run)) if shape_run else None,
+    card = {"family": family, "configs": configs, "maps": _run_facts(Path(maps_run)), "shape": shape_facts,
             "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
                         "torch": torch.__version__},
             "figures": figures or {}, "notes": notes,

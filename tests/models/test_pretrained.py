@@ -78,6 +78,24 @@ def test_export_model_command(exported, tmp_path, capsys):
     assert len(NGP.pretrained(tmp_path / "m").maps.lights) == len(overhead_rig())
 
 
+def test_export_model_keeps_another_models_shape_prior_when_only_the_maps_are_retrained(exported, tmp_path, capsys):
+    folder, maps_run, shape_run = exported
+    assert main(["export-model", "--maps-run", str(maps_run), "--shape-from", str(folder), "--out",
+                 str(tmp_path / "m")]) == 0
+    _, _, kept, card = load_model(tmp_path / "m")
+    _, _, original, original_card = load_model(folder)
+    z = torch.randn(kept.config.z_dim, generator=torch.Generator().manual_seed(1))
+    assert torch.equal(kept.code_of(z), original.code_of(z))
+    assert card["shape"]["steps"] == original_card["shape"]["steps"] and card["shape"]["kept_from"] == str(folder)
+    assert card["configs"]["shape"] == original_card["configs"]["shape"]
+    assert main(["export-model", "--maps-run", str(maps_run), "--shape-from", str(folder), "--shape-run",
+                 str(shape_run), "--out", str(tmp_path / "x")]) == 1
+    assert "not both" in capsys.readouterr().err
+    assert main(["export-model", "--maps-run", str(maps_run), "--shape-from", str(tmp_path / "none"), "--out",
+                 str(tmp_path / "y")]) == 1
+    assert "not a shipped model" in capsys.readouterr().err
+
+
 def test_the_card_adds_up_resumed_training_time_and_carries_the_runs_measurements(exported, tmp_path):
     from ngp_mi.models.pretrained import training_seconds
 
