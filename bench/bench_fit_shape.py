@@ -30,6 +30,7 @@ from pathlib import Path
 
 import torch
 
+from ngp_mi.atomic import write_json
 from ngp_mi.commands.fit_shape import FitConfig, fit_shape
 from ngp_mi.data.manifest import load_manifest
 from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
@@ -63,8 +64,12 @@ def main() -> None:
                         help="the image term at 1/K of --res (the settings with the networks in the loop)")
     parser.add_argument("--user-meshes", action="store_true",
                         help="fit the two meshes of user_meshes() (a swivel chair, a stool) instead of chairs")
+    parser.add_argument("--shard", default="1/1",
+                        help="K/N: fit only the K-th of every N targets (run the N shards side by side with the same "
+                             "--out, then once more without --shard for the whole table; finished fits are read back)")
     parser.add_argument("--out", default="outputs/bench/fit")
     args = parser.parse_args()
+    shard, shards = (int(x) for x in args.shard.split("/"))
     out = Path(args.out)
     source, num_shapes = "chair", args.shapes
     if args.user_meshes:
@@ -88,10 +93,15 @@ def main() -> None:
             continue
         results = []
         for k, shape_id in enumerate(shape_ids):
+            folder = out / f"{index}-{k}"
+            if (folder / "bench.json").exists():  # a finished fit of this setting and target (another shard's)
+                results.append(json.loads((folder / "bench.json").read_text()))
+                continue
+            if k % shards != shard - 1:
+                continue
             config = FitConfig(str(targets), shape_id=shape_id, held_out=4,
                                **{"steps": args.steps, "checkpoint_every": max(1, args.steps), **fields,
                                   **({"image_downsample": args.image_downsample} if networks else {})})
-            folder = out / f"{index}-{k}"
             start = time.perf_counter()
             summary = fit_shape(config, folder, ngp.shape_model if ngp else None, ngp if networks else None,
                                 log=lambda *_: None)
@@ -99,10 +109,13 @@ def main() -> None:
             summary["seconds_per_step"] = (time.perf_counter() - start) / steps
             if networks and "zs_seed" in summary:
                 summary.update(prior_start_images(ngp, summary, targets))
+            write_json(folder / "bench.json", summary)
             results.append(summary)
-            if k == 0 and config.steps:
-                curves[name] = json.loads((folder / "state" / "state.json").read_text())["history"]
-        rows.append((name, results))
+        first = out / f"{index}-0" / "state" / "state.json"  # the first target's curve, whichever shard fitted it
+        if first.exists() and json.loads(first.read_text())["history"]:
+            curves[name] = json.loads(first.read_text())["history"]
+        if results:
+            rows.append((name, results))
     _plot(curves, out / "curves.png")
     print(f"# bench_fit_shape — {time.strftime('%Y-%m-%d')}, {platform.machine()}, torch {torch.__version__} "
           f"({torch.get_num_threads()} threads); {', '.join(shape_ids) if args.user_meshes else f'{num_shapes} chairs from seed {args.seed}'}, "
@@ -123,7 +136,7 @@ def main() -> None:
               f"(mean {mean('chamfer_end'):.4f}) | {mean('mask_iou_held_out'):.3f} | {image} | "
               f"{statistics.median(r['seconds_per_step'] for r in results):.3f} |")
     print(f"\ncurves: {out / 'curves.png'}")
-    if ngp is not None:
+    if ngp is not None and shards == 1:
         print("\n" + step_split(ngp, targets, shape_ids[0], args.image_downsample))
 
 
