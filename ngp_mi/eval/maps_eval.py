@@ -15,7 +15,6 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +25,7 @@ from ngp_mi.atomic import write_json, write_text
 from ngp_mi.data.datasets import ReflectanceMapDataset
 from ngp_mi.models.checkpoint import newest_checkpoint
 from ngp_mi.models.maps import MapsModel, cameras_of, depth_to_net
-from ngp_mi.render.from_depth import normals_from_depth
+from ngp_mi.render.from_depth import normals_from_depth, smooth_depth
 from ngp_mi.viz import contact_sheet, save_png
 
 
@@ -36,23 +35,6 @@ def angular_error_deg(predicted: torch.Tensor, truth: torch.Tensor, mask: torch.
     t = truth / truth.norm(dim=1, keepdim=True).clamp_min(1e-8)
     cosine = (p * t).sum(1).clamp(-1.0, 1.0)
     return torch.rad2deg(torch.acos(cosine))[mask[:, 0] > 0]
-
-
-def smooth_depth(depth: torch.Tensor, mask: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Masked Gaussian smoothing (normalised convolution): background stays 0 and does not bleed in."""
-    if sigma <= 0:
-        return depth
-    radius = max(1, int(math.ceil(3 * sigma)))
-    x = torch.arange(-radius, radius + 1, dtype=depth.dtype)
-    kernel = torch.exp(-0.5 * (x / sigma) ** 2)
-    kernel = kernel / kernel.sum()
-
-    def blur(image: torch.Tensor) -> torch.Tensor:
-        image = torch.nn.functional.conv2d(image, kernel.reshape(1, 1, 1, -1), padding=(0, radius))
-        return torch.nn.functional.conv2d(image, kernel.reshape(1, 1, -1, 1), padding=(radius, 0))
-
-    weight = blur(mask)
-    return torch.where(mask > 0, blur(depth * mask) / weight.clamp_min(1e-8), torch.zeros_like(depth))
 
 
 def mean_colour(albedo: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

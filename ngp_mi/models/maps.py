@@ -30,7 +30,7 @@ from ngp_mi.lights import overhead_rig
 from ngp_mi.models import losses
 from ngp_mi.models.base import BaseModel, config_from_dict
 from ngp_mi.nets.networks import define_D, define_E, define_G
-from ngp_mi.render.from_depth import noc_from_depth_batch, normals_from_depth
+from ngp_mi.render.from_depth import noc_from_depth_batch, normals_from_depth, smooth_depth
 from ngp_mi.render.shading import DEFAULT, CameraLights, Constants, shade
 
 DEPTH_CENTER, DEPTH_SCALE, MASK_THRESHOLD = 2.0, 0.6, -0.97
@@ -63,11 +63,18 @@ class MapsConfig:
     # of the real maps' diffuse image, a blob while G_depth is young) or "real" (NOC of the real maps'
     # own depth: BicycleGAN's conditional-VAE path, a usable geometry from the first step).
     albedo_cycle_noc: str = "generated"
+    # Blur the top cycle's input depth by a masked Gaussian of σ ~ U(0, depth_blur) px per image, so
+    # G_n and G_da learn on coarse depth as they meet it at inference (the paper gets this from
+    # decorating G_shape's coarse shapes, [data] coarse_shapes); 0: off, the paper's. See
+    # :func:`coarsen_depth`.
+    depth_blur: float = 0.0
     lambdas: tuple[tuple[str, float], ...] = tuple(losses.LAMBDAS.items())
 
     def __post_init__(self) -> None:
         if self.albedo_cycle_noc not in ("generated", "real"):
             raise ValueError(f"albedo_cycle_noc must be 'generated' or 'real', got {self.albedo_cycle_noc!r}")
+        if not 0 <= self.depth_blur <= 8:
+            raise ValueError(f"depth_blur must be a blur radius σ in px within [0, 8], got {self.depth_blur!r}")
 
     @property
     def constants(self) -> Constants:
@@ -82,6 +89,16 @@ def net_to_depth(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(depth, mask) of a network depth map; the mask thresholds the depth (no gradient through it)."""
     mask = (x > MASK_THRESHOLD).to(x.dtype)
     return (DEPTH_CENTER + DEPTH_SCALE * x) * mask, mask
+
+
+def coarsen_depth(depth: torch.Tensor, mask: torch.Tensor, max_sigma: float) -> torch.Tensor:
+    """Each depth map blurred on its object by its own σ ~ U(0, ``max_sigma``) px (the masked Gaussian
+    of :func:`smooth_depth`): detailed training depth turned into the coarse depth G_n meets at
+    inference, in a range of coarseness rather than one."""
+    if max_sigma <= 0:
+        return depth
+    sigmas = torch.rand(depth.shape[0]) * max_sigma
+    return torch.cat([smooth_depth(d[None], m[None], float(s)) for d, m, s in zip(depth, mask, sigmas)])
 
 
 def cameras_of(batch: dict[str, Any], size: tuple[int, int] | None = None) -> list[Camera]:
@@ -176,6 +193,7 @@ class MapsModel(BaseModel):
         """Both cycles; returns the generator loss terms (and keeps the visuals)."""
         cams_d, cams_m = cameras_of(depth_batch), cameras_of(maps_batch)
         d_r, m_d = depth_batch["depth"], depth_batch["mask"]
+        d_r = coarsen_depth(d_r, m_d, self.config.depth_blur)
         z = torch.randn(d_r.shape[0], self.config.latent_dim, device=d_r.device)
         top = self.decorate(d_r, m_d, depth_batch, z, cams_d)
         d_r_net, noc_r, normal_g, albedo_g_net = top["depth"], top["noc"], top["normal"], top["albedo"]

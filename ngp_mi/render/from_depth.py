@@ -5,10 +5,12 @@
   bounding box, used as G_da's input and in the NOC adversarial and cycle losses (App. B).
 * :func:`normals_from_depth` — camera-space normals by central differences of the back-projected
   points (the paper's "NGP w/o G_n" baseline computes normals from the coarse depth).
+* :func:`smooth_depth` — a masked Gaussian blur: a coarse depth made from a detailed one.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
 import numpy as np
@@ -82,3 +84,20 @@ def normals_from_depth(depth: torch.Tensor, mask: torch.Tensor, cameras: Camera 
     normal = normal / torch.clamp(normal.norm(dim=1, keepdim=True), min=1e-12)
     facing = (normal * points).sum(1, keepdim=True) > 0
     return torch.where(facing, -normal, normal) * inside
+
+
+def smooth_depth(depth: torch.Tensor, mask: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Masked Gaussian smoothing (normalised convolution): background stays 0 and does not bleed in."""
+    if sigma <= 0:
+        return depth
+    radius = max(1, int(math.ceil(3 * sigma)))
+    x = torch.arange(-radius, radius + 1, dtype=depth.dtype, device=depth.device)
+    kernel = torch.exp(-0.5 * (x / sigma) ** 2)
+    kernel = kernel / kernel.sum()
+
+    def blur(image: torch.Tensor) -> torch.Tensor:
+        image = torch.nn.functional.conv2d(image, kernel.reshape(1, 1, 1, -1), padding=(0, radius))
+        return torch.nn.functional.conv2d(image, kernel.reshape(1, 1, -1, 1), padding=(radius, 0))
+
+    weight = blur(mask)
+    return torch.where(mask > 0, blur(depth * mask) / weight.clamp_min(1e-8), torch.zeros_like(depth))

@@ -5,8 +5,8 @@ import torch
 from helpers import maps_recipe
 
 from ngp_mi.camera import Camera
-from ngp_mi.eval.maps_eval import angular_error_deg, evaluate_maps, smooth_depth
-from ngp_mi.render.from_depth import normals_from_depth
+from ngp_mi.eval.maps_eval import angular_error_deg, evaluate_maps
+from ngp_mi.render.from_depth import normals_from_depth, smooth_depth
 from ngp_mi.training.maps import train_maps
 
 

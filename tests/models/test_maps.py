@@ -76,3 +76,29 @@ def test_the_albedo_cycle_reads_the_noc_the_recipe_names(loaders, albedo_cycle_n
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.G_da.film.parameters())
     with pytest.raises(ValueError, match="albedo_cycle_noc must be"):
         dataclasses.replace(TINY, albedo_cycle_noc="true")
+
+
+def test_depth_blur_coarsens_the_top_cycles_depth_on_the_object_only(loaders):
+    """Each image gets its own σ in [0, depth_blur]: the object's depth changes (edges and detail are
+    averaged), the background and the mask do not, and training stays finite; off, the input is the
+    data's depth exactly."""
+    from ngp_mi.models.maps import coarsen_depth, depth_to_net
+
+    depth, maps = next(zip(*loaders))
+    d, m = depth["depth"], depth["mask"]
+    torch.manual_seed(4)
+    coarse = coarsen_depth(d, m, 3.0)
+    assert torch.equal(coarse[m == 0], d[m == 0]) and torch.isfinite(coarse).all()
+    changed = [(c - x)[mm > 0].abs().max() > 1e-4 for c, x, mm in zip(coarse, d, m)]
+    assert sum(changed) >= 2  # σ ~ U(0, 3): all but a vanishing σ move the depth
+    assert coarse[m > 0].min() >= d[m > 0].min() - 1e-6 and coarse[m > 0].max() <= d[m > 0].max() + 1e-6
+    assert torch.equal(coarsen_depth(d, m, 0.0), d)
+    torch.manual_seed(5)
+    model = MapsModel(dataclasses.replace(TINY, normal_residual=True, depth_blur=3.0))
+    history = [model.optimize(depth, maps) for depth, maps in zip(*loaders)]
+    assert all(math.isfinite(v) for step in history for v in step.values())
+    plain = MapsModel(TINY)
+    plain(depth, maps)
+    assert torch.equal(plain.visuals["depth_r"], depth_to_net(d, m))
+    with pytest.raises(ValueError, match="depth_blur must be"):
+        dataclasses.replace(TINY, depth_blur=-1.0)
