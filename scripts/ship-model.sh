@@ -47,4 +47,4 @@ wait "$maps"
   --seed 500 --lights rig --maps-checkpoint "$runs/maps_$family"
 "$bin" export-model --maps-run "$runs/maps_$family" "${shape_args[@]}" \
   --out "ngp_mi/pretrained/$family" --family "$family" \
-  --notes "${SHAPE_FROM:+SHAPE_FROM=$SHAPE_FROM }scripts/ship-model.sh $family $map_steps $specular_steps on $(nproc) CPU cores, $(date -u +%F)"
+  --notes "${SHAPE_FROM:+SHAPE_FROM=$SHAPE_FROM }scripts/ship-model.sh $family $map_steps $specular_steps on $(nproc --all) CPU cores, $(date -u +%F)"
