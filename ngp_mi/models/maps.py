@@ -68,13 +68,18 @@ class MapsConfig:
     # decorating G_shape's coarse shapes, [data] coarse_shapes); 0: off, the paper's. See
     # :func:`coarsen_depth`.
     depth_blur: float = 0.0
+    # The same blur on the depth G_n reads inside the normal cycle (G_depth's depth of a real diffuse
+    # image): the cycle's L1 against the real normals then asks G_n to restore what a coarse depth
+    # lacks — a correctness signal, where depth_blur only adds adversarial pressure. 0: off.
+    normal_cycle_blur: float = 0.0
     lambdas: tuple[tuple[str, float], ...] = tuple(losses.LAMBDAS.items())
 
     def __post_init__(self) -> None:
         if self.albedo_cycle_noc not in ("generated", "real"):
             raise ValueError(f"albedo_cycle_noc must be 'generated' or 'real', got {self.albedo_cycle_noc!r}")
-        if not 0 <= self.depth_blur <= 8:
-            raise ValueError(f"depth_blur must be a blur radius σ in px within [0, 8], got {self.depth_blur!r}")
+        for name in ("depth_blur", "normal_cycle_blur"):
+            if not 0 <= getattr(self, name) <= 8:
+                raise ValueError(f"{name} must be a blur radius σ in px within [0, 8], got {getattr(self, name)!r}")
 
     @property
     def constants(self) -> Constants:
@@ -209,7 +214,11 @@ class MapsModel(BaseModel):
         diffuse_r_net = 2 * diffuse_r - 1
         depth_g_net = self.G_depth(diffuse_r_net)
         noc_g = self.noc(*net_to_depth(depth_g_net), maps_batch)
-        normal_cycled = self.generate_normals(depth_g_net, cams_m)
+        depth_for_normals = depth_g_net
+        if self.config.normal_cycle_blur > 0:
+            depth_g, mask_g = net_to_depth(depth_g_net)
+            depth_for_normals = depth_to_net(coarsen_depth(depth_g, mask_g, self.config.normal_cycle_blur), mask_g)
+        normal_cycled = self.generate_normals(depth_for_normals, cams_m)
         mu, logvar = self.E_da(albedo_r_net)
         z_encoded = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
         noc_real = self.noc(maps_batch["depth"], m_m, maps_batch)
