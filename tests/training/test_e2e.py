@@ -75,10 +75,10 @@ def test_the_decoder_moves_with_the_link_and_stays_without_it(runs, tmp_path):
     again = decoder(resumed / "shape")
     # Π_v's silhouette gradients sum with Dr.Jit's atomic scatter-adds, whose order varies between
     # runs, and Adam turns rounding-sized gradient differences of near-idle weights into visible
-    # ones: equal to 1 % of what the steps moved (one Adam step of the decoder moves a weight by up
-    # to its learning rate, a quarter of that)
+    # ones: up to 1.2 % of what the steps moved in repeated runs here, so the bound is 3 % (a resume
+    # that lost or repeated a step would differ by a whole step: about a quarter of it)
     moved_by = max(float((moved[k] - before[k]).abs().max()) for k in moved)
-    assert max(float((again[k] - moved[k]).abs().max()) for k in moved) < 1e-2 * moved_by
+    assert max(float((again[k] - moved[k]).abs().max()) for k in moved) < 3e-2 * moved_by
 
 
 def test_the_anchor_adds_the_weighted_occupancy_gradient_of_the_priors_training_shapes(runs):
