@@ -112,8 +112,9 @@ def main() -> None:
             write_json(folder / "bench.json", summary)
             results.append(summary)
         first = out / f"{index}-0" / "state" / "state.json"  # the first target's curve, whichever shard fitted it
-        if first.exists() and json.loads(first.read_text())["history"]:
-            curves[name] = json.loads(first.read_text())["history"]
+        history = json.loads(first.read_text())["history"] if first.exists() else []
+        if history:
+            curves[name] = history
         if results:
             rows.append((name, results))
     _plot(curves, out / "curves.png")

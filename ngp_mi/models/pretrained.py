@@ -100,9 +100,10 @@ def export_model(out: str | Path, maps_run: str | Path, shape_run: str | Path | 
         raise ValueError("export-model: --shape-run or --shape-from, not both")
     out = Path(out)
     maps, specular = MapsModel.from_run(maps_run), SpecularModel.from_run(maps_run)
-    shape = ShapeModel.from_run(shape_run) if shape_run else None
-    shape_facts = _run_facts(Path(shape_run)) if shape_run else None
-    if shape_from:
+    shape, shape_facts = None, None
+    if shape_run:
+        shape, shape_facts = ShapeModel.from_run(shape_run), _run_facts(Path(shape_run))
+    elif shape_from:
         *_, shape, kept_card = load_model(shape_from)  # read (and sha-checked) before out is written
         if shape is None:
             raise ValueError(f"export-model --shape-from {shape_from}: that model has no G_shape (shape.safetensors)")
