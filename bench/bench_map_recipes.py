@@ -11,6 +11,9 @@ views at 64²):
 * ``compare --maps-checkpoint`` on 3 held-out chairs × 2 views under the rig: sRGB PSNR / FLIP on
   the object of NGP without and with G_sp^real against a 1024-spp path-traced reference.
 
+With ``--maps-from RUN`` every arm starts from that run's map networks at ``--iterations`` and
+trains only the G_sp^real stage (for switches of that stage; ``train min`` is then the stage's).
+
 Arms run one after the other and resume (a killed experiment continues where it stopped); each
 arm's figures are kept in its folder (``result.json``, reused when the arm and budget match), so arms
 can also run side by side as separate invocations (one thread each) and a last invocation with all
@@ -28,27 +31,55 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import shutil
 import time
 from pathlib import Path
 
 import torch
+from safetensors.torch import load_file, save_file
 
 from ngp_mi.atomic import write_json
 from ngp_mi.eval.compare import CompareConfig, run_compare
 from ngp_mi.eval.maps_eval import evaluate_maps
+from ngp_mi.models.specular import SpecularModel
 from ngp_mi.training.maps import train_maps
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def seed_from_maps_run(source: Path, run: Path, iterations: int) -> None:
+    """Start ``run`` from ``source``'s map networks at step ``iterations`` (and its log up to there),
+    so that the arm trains only the G_sp^real stage: switches of that stage compared on one set of
+    map networks; the stage's networks start fresh, as the arm's recipe builds them."""
+    checkpoint = source / f"ckpt-{iterations:08d}"
+    if not checkpoint.is_dir():
+        raise SystemExit(f"--maps-from {source}: no checkpoint at step {iterations} ({checkpoint.name})")
+    if (run / checkpoint.name).exists():
+        return  # seeded before (a resumed arm)
+    # without the stage's networks (saved untrained with every checkpoint), which would override the
+    # arm's own initialisation on resume
+    stage_networks = set(SpecularModel.network_names)
+    tensors = {k: v for k, v in load_file(checkpoint / "weights.safetensors").items()
+               if k.split(".", 1)[0] not in stage_networks}
+    (run / checkpoint.name).mkdir(parents=True)
+    shutil.copy2(checkpoint / "state.pt", run / checkpoint.name / "state.pt")
+    save_file(tensors, run / checkpoint.name / "weights.safetensors")
+    log = [line for line in (source / "log.jsonl").read_text().splitlines(keepends=True)
+           if line.strip() and json.loads(line)["step"] <= iterations]
+    (run / "log.jsonl").write_text("".join(log))
+
+
 def run_arm(name: str, overrides: list[str], args: argparse.Namespace, out: Path) -> dict:
     folder = out / name.replace(" ", "_").replace("/", "-")
-    budget = {"iterations": args.iterations, "specular": args.specular, "seed": args.seed, "held_out": args.held_out}
+    budget = {"iterations": args.iterations, "specular": args.specular, "seed": args.seed, "held_out": args.held_out,
+              **({"maps_from": args.maps_from} if args.maps_from else {})}
     saved = folder / "result.json"
     if saved.exists():
         result = json.loads(saved.read_text())
         if result.get("overrides") == overrides and result.get("budget", budget) == budget:
             return result
+    if args.maps_from:
+        seed_from_maps_run(Path(args.maps_from), folder / "run", args.iterations)
     began = time.perf_counter()
     run = train_maps(ROOT / "train" / "maps_cpu.toml", log=lambda *_: None, out=folder / "run",
                      overrides=[f"train.iterations={args.iterations}", f"specular.iterations={args.specular}",
@@ -76,6 +107,8 @@ def main() -> None:
     parser.add_argument("--specular", type=int, default=400)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="outputs/bench/recipes")
+    parser.add_argument("--maps-from", help="a run whose map networks at --iterations every arm starts from "
+                                            "(arms then differ in the G_sp^real stage only)")
     args = parser.parse_args()
     out = Path(args.out)
     results = []

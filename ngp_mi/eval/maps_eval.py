@@ -95,7 +95,7 @@ def evaluate_maps(run: str | Path, data: str | Path, out: str | Path, coarse_sig
 
         noc = model.noc(depth, mask, batch)
         condition = torch.cat([noc, batch["normal"]], 1)
-        mu, _ = model.E_da(2 * batch["albedo"] - 1)
+        mu, _ = model.E_da(2 * batch["albedo"] - 1, mask)
         reconstruction = (model.G_da(condition, mu) + 1) / 2
         fidelity.append(((reconstruction - batch["albedo"]).abs().mean(1)[mask[:, 0] > 0]))
         flat.append(single_colour_l1(batch["albedo"], mask))

@@ -29,7 +29,7 @@ from ngp_mi.camera import Camera
 from ngp_mi.lights import overhead_rig
 from ngp_mi.models import losses
 from ngp_mi.models.base import BaseModel, config_from_dict
-from ngp_mi.nets.networks import define_D, define_E, define_G
+from ngp_mi.nets.networks import ENCODER_POOLS, define_D, define_E, define_G, define_palette_G
 from ngp_mi.render.from_depth import noc_from_depth_batch, normals_from_depth, smooth_depth
 from ngp_mi.render.shading import DEFAULT, CameraLights, Constants, shade
 
@@ -72,9 +72,24 @@ class MapsConfig:
     # image): the cycle's L1 against the real normals then asks G_n to restore what a coarse depth
     # lacks — a correctness signal, where depth_blur only adds adversarial pressure. 0: off.
     normal_cycle_blur: float = 0.0
+    # G_da's output: "image" (the paper's: a ResNet generator's tanh image) or "palette" (a soft
+    # partition into ``albedo_parts`` regions, one colour of z_da each; the colours bypass the instance
+    # norms that remove absolute colour). See :class:`ngp_mi.nets.networks.PaletteGenerator`.
+    albedo_head: str = "image"
+    albedo_parts: int = 4
+    # E_da's pooling: "mean" over the image (BicycleGAN's) or "masked" over the object, so a colour is
+    # not scaled by the object's size. See :class:`ngp_mi.nets.networks.ResnetEncoder`.
+    encoder_pool: str = "mean"
     lambdas: tuple[tuple[str, float], ...] = tuple(losses.LAMBDAS.items())
 
     def __post_init__(self) -> None:
+        if self.albedo_head not in ("image", "palette"):
+            raise ValueError(f"albedo_head must be 'image' or 'palette', got {self.albedo_head!r}")
+        if self.albedo_head == "palette" and (self.latent_dim < 1 or self.albedo_parts < 1):
+            raise ValueError(f"albedo_head 'palette' needs latent_dim and albedo_parts >= 1, got "
+                             f"{self.latent_dim} and {self.albedo_parts}")
+        if self.encoder_pool not in ENCODER_POOLS:
+            raise ValueError(f"encoder_pool must be one of {ENCODER_POOLS}, got {self.encoder_pool!r}")
         if self.albedo_cycle_noc not in ("generated", "real"):
             raise ValueError(f"albedo_cycle_noc must be 'generated' or 'real', got {self.albedo_cycle_noc!r}")
         for name in ("depth_blur", "normal_cycle_blur"):
@@ -132,9 +147,12 @@ class MapsModel(BaseModel):
             last = self.G_n.decoder[-2]
             nn.init.zeros_(last.weight)
             nn.init.zeros_(last.bias)
-        self.G_da = define_G(6, 3, c.ngf, c.blocks, latent_dim=c.latent_dim, latent_mode=c.latent_mode)
+        if c.albedo_head == "palette":
+            self.G_da = define_palette_G(6, c.ngf, c.blocks, c.latent_dim, c.albedo_parts)
+        else:
+            self.G_da = define_G(6, 3, c.ngf, c.blocks, latent_dim=c.latent_dim, latent_mode=c.latent_mode)
         self.G_depth = define_G(3, 1, c.ngf, c.blocks)
-        self.E_da = define_E(3, c.latent_dim, c.nef)
+        self.E_da = define_E(3, c.latent_dim, c.nef, pool=c.encoder_pool)
         self.D_n = define_D(3, c.rf_maps, c.ndf)
         self.D_da = define_D(3, c.rf_albedo, c.ndf)
         self.D_df = define_D(3, c.rf_maps, c.ndf)
@@ -206,7 +224,7 @@ class MapsModel(BaseModel):
         diffuse_g_net = 2 * diffuse_g - 1
         depth_cycled_net = self.G_depth(diffuse_g_net)
         noc_cycled = self.noc(*net_to_depth(depth_cycled_net), depth_batch)
-        z_recovered, _ = self.E_da(albedo_g_net)
+        z_recovered, _ = self.E_da(albedo_g_net, m_d)
 
         normal_r, albedo_r, m_m = maps_batch["normal"], maps_batch["albedo"], maps_batch["mask"]
         albedo_r_net = 2 * albedo_r - 1
@@ -219,7 +237,7 @@ class MapsModel(BaseModel):
             depth_g, mask_g = net_to_depth(depth_g_net)
             depth_for_normals = depth_to_net(coarsen_depth(depth_g, mask_g, self.config.normal_cycle_blur), mask_g)
         normal_cycled = self.generate_normals(depth_for_normals, cams_m)
-        mu, logvar = self.E_da(albedo_r_net)
+        mu, logvar = self.E_da(albedo_r_net, m_m)
         z_encoded = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
         noc_real = self.noc(maps_batch["depth"], m_m, maps_batch)
         noc_for_albedo = noc_real if self.config.albedo_cycle_noc == "real" else noc_g

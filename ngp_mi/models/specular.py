@@ -45,6 +45,11 @@ class SpecularConfig:
     lr: float = 1e-4
     beta1: float = 0.5
     lambda_cycle: float = 10.0
+    # Beyond the paper (issue 15): start G_sp^real dark. I_rs = (tanh(h) + 1) / 2 starts at 0.5 for
+    # h ≈ 0 — more light than the diffuse image's whole range (R_diff / π ≤ 0.32) — and a short
+    # second stage leaves a grey-blue veil over the object. dark_start zeroes the last layer's weights
+    # and sets its bias so that I_rs starts at DARK_START (a specular map is mostly black).
+    dark_start: bool = False
 
 
 def srgb_encode(linear: torch.Tensor) -> torch.Tensor:
@@ -76,6 +81,17 @@ def blend(diffuse_radiance: torch.Tensor, specular: torch.Tensor, mask: torch.Te
     return diffuse_radiance + mask * specular
 
 
+DARK_START = 0.02  # I_rs everywhere at the start of a dark_start G_sp^real (linear radiance)
+
+
+def start_dark(generator: torch.nn.Module, value: float = DARK_START) -> None:
+    """Make a tanh-output generator's image (tanh(h) + 1) / 2 start at ``value`` everywhere: its
+    last convolution's weights zero, its bias atanh(2 value − 1) (gradients still reach the weights)."""
+    last = [m for m in generator.modules() if isinstance(m, torch.nn.Conv2d)][-1]
+    torch.nn.init.zeros_(last.weight)
+    torch.nn.init.constant_(last.bias, math.atanh(2 * value - 1))
+
+
 def realistic_gan_loss(D_real: Callable, composite_net: torch.Tensor) -> torch.Tensor:
     """L_real^GAN (Sec. 3.5): composites I_c^g = I_df^g ⊕ G_sp^real(N^g, I_df^g) against real images."""
     return losses.adversarial_loss(D_real, composite_net)
@@ -100,6 +116,8 @@ class SpecularModel(BaseModel):
         super().__init__()
         self.config = c = config
         self.G_sp = define_G(6, 3, c.ngf, c.blocks)
+        if c.dark_start:
+            start_dark(self.G_sp)
         self.F_sp = define_G(3, 3, c.ngf, c.blocks)
         self.D_real = define_D(3, c.rf_image, c.ndf)
         self.D_dfr = define_D(3, c.rf_image, c.ndf)

@@ -4,10 +4,11 @@
   generator (G_n, G_da, G_depth, G_sp^real), optionally conditioned on a latent code concatenated
   to the input of every encoder layer (as VON / BicycleGAN do for G_da) or modulating its
   normalised features (:class:`FiLM`).
+* :class:`PaletteGenerator` — G_da as part regions × part colours of the code (a switch, issue 15).
 * :class:`ResnetEncoder` — E_da: albedo map → (μ, log σ²) of the 8-d appearance code.
 * :class:`PatchDiscriminator` — PatchGAN with a receptive field of 16, 34, 70 or 142 pixels;
   :class:`MultiPatchDiscriminator` combines several (the paper's "mid (70) and large (140)").
-* :func:`define_G`, :func:`define_E`, :func:`define_D` — constructors with CycleGAN's init.
+* :func:`define_G`, :func:`define_palette_G`, :func:`define_E`, :func:`define_D` — constructors with CycleGAN's init.
 """
 
 from __future__ import annotations
@@ -135,11 +136,55 @@ class ResnetGenerator(nn.Module):
         return x
 
 
-class ResnetEncoder(nn.Module):
-    """E_da: conv, ``levels`` residual downsampling blocks, average pooling, linear heads μ and log σ²."""
+class PaletteGenerator(nn.Module):
+    """An albedo map as a soft partition into ``parts`` regions, each of one colour of the code:
 
-    def __init__(self, in_channels: int, latent_dim: int = 8, nef: int = 64, levels: int = 4):
+        I_da(p) = Σ_k w_k(p) c_k(z),   w(p) = softmax(s · G(x, z)(p)),   c_k(z) = tanh(MLP(z))_k,
+
+    with a fixed background slot c_0 = −1. G is a FiLM :class:`ResnetGenerator` (which region a
+    pixel belongs to is a matter of shape, which its instance norms keep); the colours come from z
+    through an MLP, which no norm touches: the absolute colour a ResNet generator's norms remove
+    (issue 15) is what the code carries. ``s`` sharpens G's tanh-bounded scores into near-hard parts.
+    """
+
+    def __init__(self, in_channels: int, ngf: int, blocks: int, latent_dim: int, parts: int = 4,
+                 sharpness: float = 8.0, hidden: int = 64):
         super().__init__()
+        self.latent_dim, self.parts, self.sharpness = latent_dim, parts, sharpness
+        self.regions = define_G(in_channels, parts + 1, ngf, blocks, latent_dim, "film")
+        # PyTorch's default (Kaiming-uniform) init: CycleGAN's N(0, 0.02) would start every colour at
+        # grey, nearly independent of z
+        self.colours = nn.Sequential(nn.Linear(latent_dim, hidden), nn.LeakyReLU(0.2, True),
+                                     nn.Linear(hidden, hidden), nn.LeakyReLU(0.2, True), nn.Linear(hidden, 3 * parts))
+
+    def forward(self, x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        weights = torch.softmax(self.sharpness * self.regions(x, z), dim=1)
+        colours = torch.tanh(self.colours(z)).view(-1, self.parts, 3)
+        colours = torch.cat([-torch.ones_like(colours[:, :1]), colours], dim=1)
+        return torch.einsum("bkhw,bkc->bchw", weights, colours)
+
+
+ENCODER_POOLS = ("mean", "masked")
+
+
+def object_mask(image: torch.Tensor) -> torch.Tensor:
+    """(B, 1, H, W) mask of the pixels of a network-space map (2x − 1) that are not background (−1)."""
+    return (image > -1 + 1e-3).any(1, keepdim=True).to(image.dtype)
+
+
+class ResnetEncoder(nn.Module):
+    """E_da: conv, ``levels`` residual downsampling blocks, average pooling, linear heads μ and log σ².
+
+    ``pool``: ``mean`` (BicycleGAN's) averages the features over the whole image, so a colour
+    reaches the linear heads multiplied by the object's share of the image, and recovering it takes
+    a division the heads cannot do; ``masked`` averages them over the object only (the mask passed
+    to :meth:`forward`, or the non-background pixels of the input)."""
+
+    def __init__(self, in_channels: int, latent_dim: int = 8, nef: int = 64, levels: int = 4, pool: str = "mean"):
+        super().__init__()
+        if pool not in ENCODER_POOLS:
+            raise ValueError(f"encoder pool must be one of {ENCODER_POOLS}, got {pool!r}")
+        self.pool = pool
         layers: list[nn.Module] = [nn.Conv2d(in_channels, nef, 4, 2, 1)]
         channels = nef
         for level in range(1, levels):
@@ -151,8 +196,13 @@ class ResnetEncoder(nn.Module):
         self.mu = nn.Linear(channels, latent_dim)
         self.logvar = nn.Linear(channels, latent_dim)
 
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        h = self.features(x).flatten(1)
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.pool == "mean":
+            h = self.features(x).flatten(1)
+        else:
+            h = self.features[:-1](x)  # all but the average pooling
+            weight = nn.functional.adaptive_avg_pool2d(object_mask(x) if mask is None else mask, h.shape[-2:])
+            h = (h * weight).sum((2, 3)) / weight.sum((2, 3)).clamp_min(1e-3)
         return self.mu(h), self.logvar(h)
 
 
@@ -238,8 +288,12 @@ def define_G(in_channels: int, out_channels: int, ngf: int = 64, blocks: int = 9
     return net
 
 
-def define_E(in_channels: int, latent_dim: int = 8, nef: int = 64, levels: int = 4) -> ResnetEncoder:
-    return init_weights(ResnetEncoder(in_channels, latent_dim, nef, levels))
+def define_palette_G(in_channels: int, ngf: int, blocks: int, latent_dim: int, parts: int = 4) -> PaletteGenerator:
+    return PaletteGenerator(in_channels, ngf, blocks, latent_dim, parts)
+
+
+def define_E(in_channels: int, latent_dim: int = 8, nef: int = 64, levels: int = 4, pool: str = "mean") -> ResnetEncoder:
+    return init_weights(ResnetEncoder(in_channels, latent_dim, nef, levels, pool))
 
 
 def define_D(in_channels: int, receptive_fields: tuple[int, ...] = (70, 142), ndf: int = 64) -> MultiPatchDiscriminator:

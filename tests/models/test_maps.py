@@ -120,3 +120,22 @@ def test_normal_cycle_blur_trains_g_n_on_a_blurred_reconstruction_with_gradient_
     assert all(math.isfinite(v) for step in history for v in step.values())
     with pytest.raises(ValueError, match="normal_cycle_blur must be"):
         dataclasses.replace(TINY, normal_cycle_blur=9.0)
+
+
+def test_palette_albedo_and_masked_encoder_train_and_read_the_object_masks(loaders):
+    """The switches of issue 15's exemplar experiment: G_da as part regions × code colours, E_da
+    pooled over the object; E_da receives each domain's mask (a generated albedo's background is
+    not exactly −1)."""
+    torch.manual_seed(7)
+    model = MapsModel(dataclasses.replace(TINY, latent_mode="film", albedo_head="palette", encoder_pool="masked"))
+    masks = []
+    forward = model.E_da.forward
+    model.E_da.forward = lambda x, mask=None: masks.append(mask) or forward(x, mask)
+    depth, maps = next(zip(*loaders))
+    history = [model.optimize(depth, maps) for _ in range(2)]
+    assert all(math.isfinite(v) for step in history for v in step.values())
+    assert len(masks) == 4 and all(m is not None for m in masks)
+    assert torch.equal(masks[0], depth["mask"]) and torch.equal(masks[1], maps["mask"])
+    for field, value in (("albedo_head", "texture"), ("encoder_pool", "max")):
+        with pytest.raises(ValueError, match=f"{field} must be"):
+            dataclasses.replace(TINY, **{field: value})

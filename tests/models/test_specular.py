@@ -73,3 +73,21 @@ def test_composite_is_diffuse_radiance_plus_a_bounded_specular_on_the_object():
         image = model.compose(normal, diffuse_net, mask)
     assert (spec >= 0).all() and (spec <= 1).all() and (spec * (1 - mask)).abs().max() == 0
     assert torch.allclose(image - spec, (diffuse_net + 1) / 2 / math.pi, atol=1e-6)
+
+
+def test_a_dark_start_g_sp_adds_almost_no_light_at_first_and_still_learns():
+    """dark_start (issue 15): the default G_sp^real starts near I_rs = 0.5, more than the whole
+    diffuse range; the dark one starts at DARK_START everywhere, and gradients reach its last layer."""
+    from ngp_mi.models.specular import DARK_START
+
+    torch.manual_seed(0)
+    normal, diffuse = torch.randn(2, 3, 16, 16), torch.rand(2, 3, 16, 16) * 2 - 1
+    mask = torch.ones(2, 1, 16, 16)
+    default = SpecularModel(TINY).specular(normal, diffuse, mask)
+    dark_model = SpecularModel(SpecularConfig(**{**TINY.__dict__, "dark_start": True}))
+    dark = dark_model.specular(normal, diffuse, mask)
+    assert default.mean().item() > 0.3
+    assert torch.allclose(dark, torch.tensor(DARK_START), atol=1e-6)
+    dark.sum().backward()
+    last = [m for m in dark_model.G_sp.modules() if isinstance(m, torch.nn.Conv2d)][-1]
+    assert last.weight.grad.abs().sum() > 0 and torch.isfinite(last.weight.grad).all()

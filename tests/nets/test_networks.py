@@ -1,7 +1,8 @@
 import pytest
 import torch
 
-from ngp_mi.nets.networks import PatchDiscriminator, define_D, define_E, define_G, patch_receptive_field
+from ngp_mi.nets.networks import (PatchDiscriminator, define_D, define_E, define_G, define_palette_G, object_mask,
+                                  patch_receptive_field)
 
 
 def test_generator_shapes_and_latent_conditioning():
@@ -80,3 +81,41 @@ def test_a_concatenated_code_is_removed_by_the_instance_norms_and_film_keeps_it(
     assert film > 10 * concat and film > 0.2 * film_std
     with pytest.raises(ValueError, match="latent_mode must be one of"):
         define_G(6, 3, 8, 1, latent_dim=8, latent_mode="add")
+
+
+def _square(colour: tuple[float, float, float], side: int, size: int = 64) -> torch.Tensor:
+    """A network-space albedo map: a flat ``colour`` square of ``side`` px on the background (−1)."""
+    image = -torch.ones(1, 3, size, size)
+    lo = (size - side) // 2
+    image[:, :, lo:lo + side, lo:lo + side] = torch.tensor(colour)[:, None, None]
+    return image
+
+
+def test_masked_pooling_averages_the_features_over_the_object():
+    torch.manual_seed(0)
+    mean, masked = define_E(3, 8, nef=8, pool="mean"), define_E(3, 8, nef=8, pool="masked")
+    masked.load_state_dict(mean.state_dict())  # the same weights: only the pooling differs
+    large = _square((0.4, -0.2, 0.1), 24)
+    assert not torch.allclose(mean(large)[0], masked(large)[0], atol=1e-4)
+    # the heads read the features averaged over the object (its mask at their scale)
+    h = masked.features[:-1](large)
+    weight = torch.nn.functional.adaptive_avg_pool2d(object_mask(large), h.shape[-2:])
+    expected = masked.mu((h * weight).sum((2, 3)) / weight.sum((2, 3)))
+    assert torch.allclose(masked(large)[0], expected, atol=1e-6)
+    assert torch.allclose(masked(large)[0], masked(large, object_mask(large))[0])
+    with pytest.raises(ValueError, match="encoder pool must be one of"):
+        define_E(3, 8, nef=8, pool="max")
+
+
+def test_the_palette_generator_paints_each_region_a_colour_of_the_code():
+    torch.manual_seed(0)
+    G = define_palette_G(6, ngf=8, blocks=1, latent_dim=8, parts=3)
+    x, z = torch.randn(2, 6, 32, 32), torch.randn(2, 8)
+    y = G(x, z)
+    assert y.shape == (2, 3, 32, 32) and y.abs().max() <= 1
+    # every pixel is a convex combination of the background (−1) and the code's part colours
+    colours = torch.cat([-torch.ones(2, 1, 3), torch.tanh(G.colours(z)).view(2, 3, 3)], 1)
+    assert (y >= colours.amin(1)[:, :, None, None] - 1e-6).all() and (y <= colours.amax(1)[:, :, None, None] + 1e-6).all()
+    assert (G(x, torch.randn(2, 8)) - y).abs().mean() > 0.01  # the code changes the colours
+    y.mean().backward()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in G.parameters())
