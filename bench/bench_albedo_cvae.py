@@ -68,12 +68,12 @@ def exemplar_l1(G, E, held_out: list[dict], oracle: bool) -> float:
 def run_variant(name: str, args: argparse.Namespace, held_out: list[dict]) -> dict:
     spec, config = VARIANTS[name], MapsConfig()
     saved = Path(args.out) / name / "result.json"
-    budget = {"steps": args.steps, "every": args.every, "seed": args.seed, "lr": args.lr}
+    budget = {"steps": args.steps, "every": args.every, "seed": args.seed, "lr": args.lr, "parts": args.parts}
     if saved.exists() and (result := json.loads(saved.read_text())).get("budget") == budget:
         return result
     torch.manual_seed(args.seed)
     if spec.get("head") == "palette":
-        G = define_palette_G(6, args.ngf, args.blocks, config.latent_dim, config.albedo_parts)
+        G = define_palette_G(6, args.ngf, args.blocks, config.latent_dim, args.parts)
     else:
         G = define_G(6, 3, args.ngf, args.blocks, latent_dim=config.latent_dim, latent_mode="film")
     E = define_E(3, config.latent_dim, args.ngf, pool=spec.get("pool", "mean"))
@@ -112,6 +112,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=900)
     parser.add_argument("--every", type=int, default=300)
     parser.add_argument("--lr", type=float, default=4e-4)
+    parser.add_argument("--parts", type=int, default=MapsConfig().albedo_parts, help="the palette's regions")
     parser.add_argument("--ngf", type=int, default=24)
     parser.add_argument("--blocks", type=int, default=4)
     parser.add_argument("--seed", type=int, default=0)
@@ -122,7 +123,8 @@ def main() -> None:
     results = [run_variant(name, args, held_out) for name in args.variant or VARIANTS]
     steps = [s for s, _ in results[0]["curve"]]
     print(f"\n# bench_albedo_cvae — {time.strftime('%Y-%m-%d')}, {platform.machine()}, torch {torch.__version__} "
-          f"({torch.get_num_threads()} threads); lr {args.lr}, batch 8, seed {args.seed}; held-out {args.held_out}; "
+          f"({torch.get_num_threads()} threads); lr {args.lr}, batch 8, seed {args.seed}, {args.parts} palette parts; "
+          f"held-out {args.held_out}; "
           f"best single colour per view {flat:.3f}\n")
     print("| variant | " + " | ".join(f"exemplar L1 @{s}" for s in steps) + " | s / step |")
     print("|---|" + "---|" * (len(steps) + 1))
