@@ -33,7 +33,7 @@ from torch.utils.data import DataLoader
 
 from ngp_mi.atomic import write_json
 from ngp_mi.data.datasets import ReflectanceMapDataset
-from ngp_mi.eval.maps_eval import single_colour_l1
+from ngp_mi.eval.maps_eval import l1_on_object, single_colour_l1
 from ngp_mi.models import losses
 from ngp_mi.models.maps import MapsConfig, MapsModel
 from ngp_mi.nets.networks import define_E, define_G, define_palette_G
@@ -61,7 +61,7 @@ def exemplar_l1(G, E, held_out: list[dict], oracle: bool) -> float:
         mask = batch["mask"]
         mu, _ = E(2 * batch["albedo"] - 1, mask)
         reconstruction = (G(condition(batch, oracle), mu) + 1) / 2
-        errors.append((reconstruction - batch["albedo"]).abs().mean(1)[mask[:, 0] > 0])
+        errors.append(l1_on_object(reconstruction, batch["albedo"], mask))
     return torch.cat(errors).mean().item()
 
 

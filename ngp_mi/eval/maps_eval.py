@@ -37,6 +37,11 @@ def angular_error_deg(predicted: torch.Tensor, truth: torch.Tensor, mask: torch.
     return torch.rad2deg(torch.acos(cosine))[mask[:, 0] > 0]
 
 
+def l1_on_object(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Per-pixel L1 (mean over channels) between maps (N, C, H, W), over ``mask`` > 0 (flattened)."""
+    return (a - b).abs().mean(1)[mask[:, 0] > 0]
+
+
 def mean_colour(albedo: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """(N, 3): each image's mean colour on the object."""
     return (albedo * mask).sum((2, 3)) / mask.sum((2, 3)).clamp_min(1)
@@ -97,12 +102,12 @@ def evaluate_maps(run: str | Path, data: str | Path, out: str | Path, coarse_sig
         condition = torch.cat([noc, batch["normal"]], 1)
         mu, _ = model.E_da(2 * batch["albedo"] - 1, mask)
         reconstruction = (model.G_da(condition, mu) + 1) / 2
-        fidelity.append(((reconstruction - batch["albedo"]).abs().mean(1)[mask[:, 0] > 0]))
+        fidelity.append(l1_on_object(reconstruction, batch["albedo"], mask))
         flat.append(single_colour_l1(batch["albedo"], mask))
         samples = [(model.G_da(condition, torch.randn_like(mu)) + 1) / 2 for _ in range(latent_samples)]
         real_colours.append(mean_colour(batch["albedo"], mask))
         sample_colours += [mean_colour(sample, mask) for sample in samples]
-        pairs = [(a - b).abs().mean(1)[mask[:, 0] > 0].mean() for i, a in enumerate(samples) for b in samples[i + 1:]]
+        pairs = [l1_on_object(a, b, mask).mean() for i, a in enumerate(samples) for b in samples[i + 1:]]
         diversity.append(torch.stack(pairs).mean())
         if sheet is None:
             tiles = [batch["normal"][0], normal_depth[0], normal_gn[0], batch["albedo"][0] * 2 - 1,

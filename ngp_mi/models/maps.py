@@ -144,7 +144,7 @@ class MapsModel(BaseModel):
         c = config
         self.G_n = define_G(1, 3, c.ngf, c.blocks)
         if c.normal_residual:  # start from the depth's own normals: the correction's last layer is zero
-            last = self.G_n.decoder[-2]
+            last = self.G_n.output_conv
             nn.init.zeros_(last.weight)
             nn.init.zeros_(last.bias)
         if c.albedo_head == "palette":

@@ -33,7 +33,7 @@ import torch
 from ngp_mi.models import losses
 from ngp_mi.models.base import BaseModel, config_from_dict
 from ngp_mi.models.maps import MapsModel, cameras_of, net_to_depth
-from ngp_mi.nets.networks import define_D, define_G
+from ngp_mi.nets.networks import ResnetGenerator, define_D, define_G
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,10 +84,10 @@ def blend(diffuse_radiance: torch.Tensor, specular: torch.Tensor, mask: torch.Te
 DARK_START = 0.02  # I_rs everywhere at the start of a dark_start G_sp^real (linear radiance)
 
 
-def start_dark(generator: torch.nn.Module, value: float = DARK_START) -> None:
-    """Make a tanh-output generator's image (tanh(h) + 1) / 2 start at ``value`` everywhere: its
-    last convolution's weights zero, its bias atanh(2 value − 1) (gradients still reach the weights)."""
-    last = [m for m in generator.modules() if isinstance(m, torch.nn.Conv2d)][-1]
+def start_dark(generator: ResnetGenerator, value: float = DARK_START) -> None:
+    """Make a generator's image (tanh(h) + 1) / 2 start at ``value`` everywhere: its last
+    convolution's weights zero, its bias atanh(2 value − 1) (gradients still reach the weights)."""
+    last = generator.output_conv
     torch.nn.init.zeros_(last.weight)
     torch.nn.init.constant_(last.bias, math.atanh(2 * value - 1))
 

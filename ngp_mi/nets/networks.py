@@ -108,6 +108,11 @@ class ResnetGenerator(nn.Module):
             nn.ConvTranspose2d(2 * ngf, ngf, 3, 2, 1, output_padding=1), _norm(ngf), nn.ReLU(True),
             nn.ReflectionPad2d(3), nn.Conv2d(ngf, out_channels, 7), nn.Tanh())
 
+    @property
+    def output_conv(self) -> nn.Conv2d:
+        """The last convolution, before the tanh: what a chosen starting output is set on."""
+        return self.decoder[-2]
+
     def forward(self, x: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
         if (z is None) != (self.latent_dim == 0):
             raise ValueError(f"generator expects a latent code of size {self.latent_dim}" if self.latent_dim
