@@ -48,6 +48,9 @@ PRIOR_SETTINGS = {
     "(c) prior then vertices, masks + images (networks in the loop)": ({"start": "zs", "depth_weight": 0.0}, True),
     "(c) after (b): z_s and the decoder, then vertices, masks only": (
         {"start": "zs", "fit_decoder": True, "depth_weight": 0.0, "image_weight": 0.0}, False),
+    "(c) after (b) and (d): the field on a grid, free-space rays, then vertices, masks only": (
+        {"start": "zs", "fit_decoder": True, "grid_steps": 60, "lr": 1e-2, "depth_weight": 0.0, "image_weight": 0.0},
+        False),
 }
 
 
@@ -105,7 +108,7 @@ def main() -> None:
             start = time.perf_counter()
             summary = fit_shape(config, folder, ngp.shape_model if ngp else None, ngp if networks else None,
                                 log=lambda *_: None)
-            steps = config.steps + (config.zs_steps if config.start == "zs" else 0)
+            steps = config.steps + (config.zs_steps + config.grid_steps if config.start == "zs" else 0)
             summary["seconds_per_step"] = (time.perf_counter() - start) / steps
             if networks and "zs_seed" in summary:
                 summary.update(prior_start_images(ngp, summary, targets))

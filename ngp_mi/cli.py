@@ -373,6 +373,14 @@ def fit_shape_flags(p: argparse.ArgumentParser) -> None:
                    help="with --start zs: the decoder's weights move with z_s (phase (b))")
     p.add_argument("--decoder-lr", type=float, default=default(FitConfig, "decoder_lr"),
                    help="Adam's step for the decoder with --fit-decoder (default: %(default)s)")
+    p.add_argument("--grid-steps", type=at_least(0), default=default(FitConfig, "grid_steps"),
+                   help="with --start zs: steps of phase (d), the field on a grid whose nodes move freely, which can "
+                        "open holes (a chair back's slats) before the vertices (default: %(default)s)")
+    p.add_argument("--grid-resolution", type=at_least(8), default=default(FitConfig, "grid_resolution"),
+                   help="cells per axis of phase (d)'s grid (default: %(default)s)")
+    p.add_argument("--ray-weight", type=float, default=default(FitConfig, "ray_weight"),
+                   help="phase (d): weight of the free-space term along the rays of background pixels "
+                        "(default: %(default)s)")
     p.add_argument("--mask-weight", type=float, default=default(FitConfig, "mask_weight"), help="(default: %(default)s)")
     p.add_argument("--depth-weight", type=float, default=default(FitConfig, "depth_weight"),
                    help="0 fits masks only (default: %(default)s)")
@@ -398,6 +406,7 @@ def fit_shape(args: argparse.Namespace) -> int:
                        depth_weight=args.depth_weight, silhouette=not args.no_silhouette, spp=args.spp,
                        boundary_spp=args.boundary_spp, zs_steps=args.zs_steps, image_weight=args.image_weight,
                        fit_decoder=args.fit_decoder, decoder_lr=args.decoder_lr, mesh_format=args.format,
+                       grid_steps=args.grid_steps, grid_resolution=args.grid_resolution, ray_weight=args.ray_weight,
                        image_downsample=args.image_downsample)
     from ngp_mi.models.shape import ShapeModel
     from ngp_mi.pipeline import NGP

@@ -8,7 +8,10 @@ What moves (paper Sec. 3's chain, each stage a function of its own):
   ``zs_steps`` through G_shape, the differentiable iso-surface link and Π_v (:func:`fit_latent`),
   ending on its lowest-loss step (Adam's steps on z_s overshoot and come back: the last is often not it);
   (b) with ``fit_decoder``, the decoder's weights too;
-* (c) the mesh's vertices x — from (a)/(b), a sphere or a mesh file — through the Laplacian
+* (d) with ``grid_steps``, after (a)/(b): the fitted field's values on a grid, each node free
+  (:func:`fit_grid`), moved by the mask term and the free-space term along the rays of the target's
+  background pixels (:mod:`ngp_mi.geometry.carving`) — the one phase that can open a hole;
+* (c) the mesh's vertices x — from (a)/(b)/(d), a sphere or a mesh file — through the Laplacian
   parameterisation u = (I + λ L) x (:mod:`ngp_mi.geometry.laplacian`, Nicolet et al. 2021), Adam.
 
 Each step projects the shape into every fitted view with silhouette gradients
@@ -50,12 +53,15 @@ from ngp_mi.camera import Camera
 from ngp_mi.data.exr import read_exr
 from ngp_mi.data.manifest import load_manifest
 from ngp_mi.eval.shape_metrics import chamfer_distance
+from ngp_mi.geometry.carving import OccupancyGrid, ray_silhouette_terms
+from ngp_mi.geometry.extract import attach_iso_surface_gradient
 from ngp_mi.geometry.families import generate
 from ngp_mi.geometry.laplacian import LargeSteps
 from ngp_mi.geometry.loaders import load_mesh
 from ngp_mi.geometry.mesh import TriangleMesh
-from ngp_mi.lights import Light, light_from_dict
 from ngp_mi.geometry.occupancy import surface_samples, voxel_iou
+from ngp_mi.lights import Light, light_from_dict
+from ngp_mi.models.shape import LEVEL
 from ngp_mi.render.depth import depth_of_hits, project_depth
 from ngp_mi.viz import chw_to_uint8, depth_to_uint8, labelled_grid, linear_to_srgb, save_animation, save_png
 
@@ -76,6 +82,13 @@ class FitConfig:
     fit_decoder: bool = False  # phase (b): the decoder's weights move with z_s
     decoder_lr: float = 1e-4
     extract_resolution: int = 48  # marching-cubes grid of G_shape's surface while z_s is fitted
+    grid_steps: int = 0  # phase (d), after (a)/(b): the field's values on a grid, each node free (can open holes)
+    grid_resolution: int = 96
+    grid_lr: float = 2e-2
+    ray_weight: float = 1.0  # phase (d): the grid's free-space term along background rays (opens holes)
+    ray_hit_weight: float = 0.0  # and its hit term (max along a target's ray ≥ ℓ): ambiguous where, so off
+    rays_per_view: int = 128  # rays of it per view and step, drawn where the mesh and the target mask differ
+    ray_samples: int = 64  # occupancy samples per ray
     sphere_radius: float = 0.4
     sphere_subdivisions: int = 4
     mask_weight: float = 1.0
@@ -92,7 +105,8 @@ class FitConfig:
     retries: int = 3  # undone steps in a row (step size halved each time) before a fit gives up
 
     def __post_init__(self) -> None:
-        for name in ("spp", "boundary_spp", "checkpoint_every", "frame_every", "image_downsample"):
+        for name in ("spp", "boundary_spp", "checkpoint_every", "frame_every", "image_downsample", "rays_per_view",
+                     "ray_samples"):
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
         if self.steps < (0 if self.start == "zs" else 1):
@@ -102,8 +116,13 @@ class FitConfig:
         if self.fit_decoder and self.start != "zs":
             raise ValueError("--fit-decoder needs --start zs (the decoder is the shape prior's)")
         if not (self.lr > 0 and self.zda_lr > 0 and self.decoder_lr > 0 and self.lam >= 0 and self.mask_weight >= 0 and self.depth_weight >= 0
-                and self.image_weight >= 0):
-            raise ValueError("--lr must be > 0 and --lam, --mask-weight, --depth-weight, --image-weight >= 0")
+                and self.image_weight >= 0 and self.ray_weight >= 0 and self.ray_hit_weight >= 0):
+            raise ValueError("--lr must be > 0 and --lam, --mask-weight, --depth-weight, --image-weight, --ray-weight >= 0")
+        if self.grid_steps and self.start != "zs":
+            raise ValueError("--grid-steps needs --start zs (phase (d) starts from the shape prior's field)")
+        if self.grid_steps < 0 or self.grid_resolution < 8 or not self.grid_lr > 0:
+            raise ValueError(f"--grid-steps must be >= 0, --grid-resolution >= 8 and --grid-lr > 0, got "
+                             f"{self.grid_steps}, {self.grid_resolution}, {self.grid_lr}")
         if self.mask_weight == 0 and self.depth_weight == 0:
             raise ValueError("fit-shape needs a loss: --mask-weight or --depth-weight > 0")
 
@@ -310,14 +329,16 @@ def _step_losses(vertices: torch.Tensor, faces: np.ndarray, targets: Targets, fi
 
 
 def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitConfig,
-               log: Callable[[str], None], image_term: ImageTerm | None = None) -> tuple[TriangleMesh, dict[str, Any]]:
+               log: Callable[[str], None], image_term: ImageTerm | None = None
+               ) -> tuple[TriangleMesh, Callable[[torch.Tensor], torch.Tensor], dict[str, Any]]:
     """Phase (a): the best of ``zs_candidates`` latents by mask loss, then z_s fitted through G_shape
     (with ``fit_decoder``, the decoder's weights too, at ``decoder_lr``: phase (b)); with an image
     term, z_da moves beside them.
 
     A step whose latent gives an empty shape is undone and the step size halved (logged), so a fit
     never stops on a shape with nothing to project. Phase (b) moves a copy of the decoder: the
-    caller's prior stays as trained (one prior serves many fits).
+    caller's prior stays as trained (one prior serves many fits). Returns the mesh, the fitted
+    occupancy field (points → occupancy) and the phase's record.
     """
     from ngp_mi.pipeline import latent  # the one rule of seeded latents
 
@@ -394,13 +415,68 @@ def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitCon
         log(f"fit-shape: z_s fitted, mask loss {history[0]['mask']:.4f} → {end['mask']:.4f} (step {end_step})")
     else:
         log("fit-shape: no z_s step")
-    return extraction.mesh, {"zs_seed": best_seed, "zs_history": history, "zs_halvings": halvings,
+    with torch.no_grad():
+        field = shape_model.field(shape_model.code_of(z.detach())[0])  # G_shape as fitted, for phase (d)
+    return extraction.mesh, field, {"zs_seed": best_seed, "zs_history": history, "zs_halvings": halvings,
                              "chamfer_zs_start": chamfer_zs_start,  # the best latent's shape, before z_s moved
                              "zs_end_step": end_step,
                              "decoder_fitted": bool(decoder),
                              **({"decoder_moved_by": max(float((p - t).abs().max()) for p, t in zip(decoder, trained))}
                                 if decoder else {}),
                              **({"z_da": image_term.z_da.detach()[0].tolist()} if image_term is not None else {})}
+
+
+def fit_grid(field: Callable[[torch.Tensor], torch.Tensor], targets: Targets, fitted: slice, config: FitConfig,
+             log: Callable[[str], None], image_term: ImageTerm | None = None) -> tuple[TriangleMesh, dict[str, Any]]:
+    """Phase (d): the occupancy field of (a)/(b) sampled on a ``grid_resolution``³ grid whose node
+    values then move freely (:class:`~ngp_mi.geometry.carving.OccupancyGrid`), for ``grid_steps``
+    steps of the mask term (through the iso-surface link) and the ray terms.
+
+    A decoder answers a loss on one part by moving the whole shape; a grid node moves only the
+    surface around it, so the free-space term can open a gap (between a chair back's slats) without
+    eroding the rest, a change of topology the vertex phase cannot make. Ends on the lowest-loss step;
+    a step that empties the grid is undone with half the step size.
+    """
+    grid = OccupancyGrid.from_field(field, config.grid_resolution, LEVEL)
+    moving = [grid.values, *([image_term.z_da] if image_term is not None else [])]
+    optimizer = torch.optim.Adam([{"params": [grid.values], "lr": config.grid_lr}]
+                                 + ([{"params": [image_term.z_da], "lr": config.zda_lr}] if image_term is not None else []))
+    history, previous = [], [p.detach().clone() for p in moving]
+    best_total, best, best_step = float("inf"), previous, 0
+    for step in range(config.grid_steps):
+        mesh = grid.mesh(LEVEL)
+        if mesh is None:
+            for p, kept in zip(moving, previous):
+                p.data.copy_(kept)
+            for group in optimizer.param_groups:
+                group["lr"] *= 0.5
+            log(f"fit-shape: grid step {step} emptied the shape; undone, step size halved")
+            continue
+        vertices = attach_iso_surface_gradient(torch.as_tensor(mesh.vertices, dtype=torch.float32), grid)
+        maps, terms = _step_losses(vertices, mesh.faces, targets, fitted, config, step, image_term)
+        rays = ray_silhouette_terms(grid, targets.cameras[fitted], maps.mask, targets.mask[fitted],
+                                    config.rays_per_view, config.ray_samples, level=LEVEL, seed=step)
+        terms = {**terms, **rays, "total": terms["total"] + config.ray_weight * rays["free"]
+                 + config.ray_hit_weight * rays["hit"]}
+        optimizer.zero_grad(set_to_none=True)
+        terms["total"].backward()
+        previous = [p.detach().clone() for p in moving]
+        total = float(terms["total"].detach())
+        if total < best_total:
+            best_total, best, best_step = total, previous, step
+        if all(p.grad is None or torch.isfinite(p.grad).all() for p in moving):
+            optimizer.step()
+        else:
+            log(f"fit-shape: grid step {step}: a non-finite gradient; skipped")
+        history.append({"step": step + 1, **{k: float(v.detach()) for k, v in terms.items()}})
+    for p, kept in zip(moving, best):
+        p.data.copy_(kept)
+    mesh = grid.mesh(LEVEL)
+    if history:
+        end = next(h for h in history if h["step"] == best_step + 1)
+        log(f"fit-shape: grid fitted, mask loss {history[0]['mask']:.4f} → {end['mask']:.4f} (step {best_step + 1})")
+    return mesh, {"grid_history": history, "grid_end_step": best_step + 1,
+                  **({"z_da": image_term.z_da.detach()[0].tolist()} if image_term is not None else {})}
 
 
 def _start_mesh(config: FitConfig) -> TriangleMesh:
@@ -457,7 +533,10 @@ def fit_shape(config: FitConfig, out: str | Path, shape_model: Any = None, ngp: 
             if image_term is not None and "z_da" in latent_phase:  # the vertices start from phase (a)'s appearance
                 image_term.z_da.data.copy_(torch.tensor(latent_phase["z_da"])[None])
         else:
-            start, latent_phase = fit_latent(shape_model, targets, fitted, config, log, image_term)
+            start, field, latent_phase = fit_latent(shape_model, targets, fitted, config, log, image_term)
+            if config.grid_steps:
+                start, grid_phase = fit_grid(field, targets, fitted, config, log, image_term)
+                latent_phase.update(grid_phase)
             with atomic_path(start_file) as tmp:
                 save_file({"vertices": torch.as_tensor(start.vertices, dtype=torch.float32).contiguous(),
                            "faces": torch.as_tensor(np.asarray(start.faces, np.int64)).contiguous()}, tmp)
@@ -588,10 +667,12 @@ def _finish(config: FitConfig, out: Path, targets: Targets, param: LargeSteps, u
                "mask_iou_held_out": float(np.mean(ious[fitted:])) if config.held_out else None,
                "chamfer_start": _chamfer(start, truth) if truth is not None else None,
                "chamfer_end": _chamfer(mesh, truth) if truth is not None else None,
-               "start": config.start, **{k: v for k, v in latent_phase.items() if k != "zs_history"}}
-    latent_steps = latent_phase.get("zs_history", [])  # the z_s phase first, then the vertices
-    _plot(latent_steps + [{**h, "step": h["step"] + len(latent_steps)} for h in history], out / "curves.png",
-          len(latent_steps))
+               "mask_iou_held_out_start": (float(np.mean([_iou(before[i, 0], targets.mask[i, 0]) for i in range(fitted, n)]))
+                                           if config.held_out else None),
+               "start": config.start, **{k: v for k, v in latent_phase.items() if not k.endswith("_history")}}
+    phases = [("z_s", latent_phase.get("zs_history", [])), ("grid", latent_phase.get("grid_history", [])),
+              ("vertices", history)]  # one curve through the phases, in their order
+    _plot(phases, out / "curves.png")
     target_depth = targets.depth if targets.depth is not None else torch.zeros_like(targets.mask)
     rows = [[_overlay(maps.mask[i, 0], targets.mask[i, 0]), depth_to_uint8(target_depth[i, 0], targets.mask[i, 0]),
              depth_to_uint8(maps.depth[i, 0], maps.mask[i, 0])] for i in range(n)]
@@ -662,18 +743,27 @@ def _write_mesh(path: Path, mesh: TriangleMesh) -> None:
         trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(tmp, file_type=path.suffix[1:])
 
 
-def _plot(history: list[dict[str, float]], path: Path, latent_steps: int = 0) -> None:
+def _plot(phases: list[tuple[str, list[dict[str, float]]]], path: Path) -> None:
+    """The named loss terms over the steps of the phases that ran, one after the other, the phases'
+    boundaries marked."""
     import matplotlib  # only the curves need it
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    history, bounds = [], []
+    for name, steps in phases:
+        if steps:
+            history += [{**h, "step": h["step"] + len(history)} for h in steps]
+            bounds.append((len(history), name))
     steps = [h["step"] for h in history]
     fig, ax = plt.subplots(figsize=(6, 3.5))
-    for name in [k for k in ("total", "mask", "depth", "image") if any(k in h for h in history)]:
+    for name in [k for k in ("total", "mask", "depth", "image", "free") if any(k in h for h in history)]:
         ax.semilogy(steps, [max(h[name], 1e-12) if name in h else float("nan") for h in history], label=name)
-    if latent_steps:
-        ax.axvline(latent_steps + 0.5, color="grey", linestyle=":", label="z_s | vertices")
+    for (end, name), (_, following) in zip(bounds, bounds[1:]):
+        ax.axvline(end + 0.5, color="grey", linestyle=":")
+        ax.annotate(f"{name} | {following}", (end + 0.5, 1.0), xycoords=("data", "axes fraction"), fontsize=7,
+                    ha="center", va="bottom", color="grey")
     ax.set_xlabel("step")
     ax.set_ylabel("loss")
     ax.legend()

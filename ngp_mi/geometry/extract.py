@@ -105,15 +105,20 @@ def extract_mesh(field: Field, resolution: int = 128, level: float = 0.0, coarse
     """
     start = time.perf_counter()
     values, evaluated = field_grid(field, resolution, coarse, level, half, chunk)
-    dense = (resolution + 1) ** 3
+    mesh = grid_mesh(values, level, half, inside_above, name)
+    return Extraction(mesh, evaluated, (resolution + 1) ** 3, time.perf_counter() - start)
+
+
+def grid_mesh(values: np.ndarray, level: float, half: float = DOMAIN, inside_above: bool = False,
+              name: str = "extracted") -> TriangleMesh | None:
+    """Marching cubes of field values on the ``(R+1)³`` nodes over ``[-half, half]³`` (None: no crossing)."""
     if not (values.min() < level < values.max()):
-        return Extraction(None, evaluated, dense, time.perf_counter() - start)
-    spacing = (2 * half / resolution,) * 3
+        return None
+    spacing = (2 * half / (values.shape[0] - 1),) * 3
     verts, faces, _, _ = measure.marching_cubes(values, level, spacing=spacing, allow_degenerate=False)
     if inside_above:  # scikit-image orients triangles towards increasing values
         faces = faces[:, ::-1]
-    mesh = TriangleMesh(verts - half, np.ascontiguousarray(faces), name=name)
-    return Extraction(mesh, evaluated, dense, time.perf_counter() - start)
+    return TriangleMesh(verts - half, np.ascontiguousarray(faces), name=name)
 
 
 def attach_iso_surface_gradient(vertices: torch.Tensor, field: Field, eps: float = 1e-8) -> torch.Tensor:

@@ -372,6 +372,25 @@ def test_phase_b_moves_the_decoder_and_phase_a_fits_z_da_from_images(chair_image
         FitConfig(str(chair_images), fit_decoder=True)
 
 
+def test_phase_d_moves_the_field_on_a_grid_and_hands_its_mesh_to_the_vertices(chair_views, tiny_run, tmp_path):
+    from ngp_mi.models.shape import ShapeModel
+
+    messages = []
+    config = FitConfig(str(chair_views), start="zs", zs_candidates=2, zs_steps=3, steps=2, extract_resolution=32,
+                       grid_steps=5, grid_resolution=32)
+    summary = fit_shape(config, tmp_path, ShapeModel.from_run(tiny_run[0]), log=messages.append)
+    latent = json.loads((tmp_path / "state" / "latent.json").read_text())
+    assert len(latent["grid_history"]) == 5 and all("free" in h and np.isfinite(h["total"]) for h in latent["grid_history"])
+    assert latent["grid_end_step"] == min(latent["grid_history"], key=lambda h: h["total"])["step"]
+    assert any("grid fitted" in m for m in messages) and np.isfinite(summary["chamfer_end"])
+    start = load_file(tmp_path / "state" / "start.safetensors")["vertices"].numpy()
+    assert np.abs(start).max() <= 0.55 + 1e-6  # the grid's mesh, inside its domain, is the vertex phase's start
+    with pytest.raises(ValueError, match="--grid-steps needs --start zs"):
+        FitConfig(str(chair_views), grid_steps=3)
+    with pytest.raises(ValueError, match="--grid-resolution"):
+        FitConfig(str(chair_views), start="zs", grid_steps=3, grid_resolution=4)
+
+
 def test_zero_vertex_steps_stop_after_the_latent_phase(chair_views, tiny_run, tmp_path):
     from ngp_mi.models.shape import ShapeModel
 
@@ -449,3 +468,14 @@ def test_the_command_line_fit_writes_a_ply(chair_views, tmp_path):
     assert main(["fit-shape", "--targets", str(chair_views), "--out", str(tmp_path / "f"), "--steps", "3",
                  "--format", "ply"]) == 0
     assert len(trimesh.load(tmp_path / "f" / "fit.ply", force="mesh").faces) > 0
+
+
+def test_the_command_line_runs_phases_b_and_d(chair_views, tiny_run, tmp_path):
+    from ngp_mi.cli import main
+
+    assert main(["fit-shape", "--targets", str(chair_views), "--out", str(tmp_path / "f"), "--start", "zs",
+                 "--shape-run", str(tiny_run[0]), "--zs-steps", "2", "--fit-decoder", "--grid-steps", "2",
+                 "--grid-resolution", "32", "--ray-weight", "2", "--steps", "1"]) == 0
+    latent = json.loads((tmp_path / "f" / "state" / "latent.json").read_text())
+    assert latent["decoder_fitted"] and len(latent["grid_history"]) == 2
+    assert json.loads((tmp_path / "f" / "fit.json").read_text())["config"]["ray_weight"] == 2.0
