@@ -378,6 +378,8 @@ def fit_shape_flags(p: argparse.ArgumentParser) -> None:
                         "open holes (a chair back's slats) before the vertices (default: %(default)s)")
     p.add_argument("--grid-resolution", type=at_least(8), default=default(FitConfig, "grid_resolution"),
                    help="cells per axis of phase (d)'s grid (default: %(default)s)")
+    p.add_argument("--grid-lr", type=float, default=default(FitConfig, "grid_lr"),
+                   help="Adam's step for phase (d)'s node values (default: %(default)s)")
     p.add_argument("--ray-weight", type=float, default=default(FitConfig, "ray_weight"),
                    help="phase (d): weight of the free-space term along the rays of background pixels "
                         "(default: %(default)s)")
@@ -406,7 +408,8 @@ def fit_shape(args: argparse.Namespace) -> int:
                        depth_weight=args.depth_weight, silhouette=not args.no_silhouette, spp=args.spp,
                        boundary_spp=args.boundary_spp, zs_steps=args.zs_steps, image_weight=args.image_weight,
                        fit_decoder=args.fit_decoder, decoder_lr=args.decoder_lr, mesh_format=args.format,
-                       grid_steps=args.grid_steps, grid_resolution=args.grid_resolution, ray_weight=args.ray_weight,
+                       grid_steps=args.grid_steps, grid_resolution=args.grid_resolution, grid_lr=args.grid_lr,
+                       ray_weight=args.ray_weight,
                        image_downsample=args.image_downsample)
     from ngp_mi.models.shape import ShapeModel
     from ngp_mi.pipeline import NGP

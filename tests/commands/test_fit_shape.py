@@ -475,7 +475,8 @@ def test_the_command_line_runs_phases_b_and_d(chair_views, tiny_run, tmp_path):
 
     assert main(["fit-shape", "--targets", str(chair_views), "--out", str(tmp_path / "f"), "--start", "zs",
                  "--shape-run", str(tiny_run[0]), "--zs-steps", "2", "--fit-decoder", "--grid-steps", "2",
-                 "--grid-resolution", "32", "--ray-weight", "2", "--steps", "1"]) == 0
+                 "--grid-resolution", "32", "--grid-lr", "0.05", "--ray-weight", "2", "--steps", "1"]) == 0
     latent = json.loads((tmp_path / "f" / "state" / "latent.json").read_text())
     assert latent["decoder_fitted"] and len(latent["grid_history"]) == 2
-    assert json.loads((tmp_path / "f" / "fit.json").read_text())["config"]["ray_weight"] == 2.0
+    config = json.loads((tmp_path / "f" / "fit.json").read_text())["config"]
+    assert config["ray_weight"] == 2.0 and config["grid_lr"] == 0.05
