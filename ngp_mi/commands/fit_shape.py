@@ -328,6 +328,43 @@ def _step_losses(vertices: torch.Tensor, faces: np.ndarray, targets: Targets, fi
                             config.depth_weight, image, target_image, config.image_weight)
 
 
+def _descend(moving: list[torch.Tensor], optimizer: torch.optim.Optimizer, steps: int,
+             step_terms: Callable[[int], dict[str, torch.Tensor] | None], log: Callable[[str], None], phase: str
+             ) -> tuple[list[dict[str, float]], int, list[torch.Tensor], int, list[torch.Tensor]]:
+    """The steps of a phase that moves a field (z_s and the decoder, or a grid): ``step_terms(step)``
+    gives the named loss terms, or None when the parameters give no shape — then the last step is
+    undone and the step size halved (logged); a non-finite gradient skips the step (logged).
+
+    Returns the history, the number of halvings, the lowest-loss parameters seen and their step
+    (1-based; noisy steps end anywhere, so a phase may end there rather than on its last step), and
+    the parameters of the last step that gave a shape."""
+    previous = [p.detach().clone() for p in moving]
+    history, halvings = [], 0
+    best_total, best, best_step = float("inf"), previous, 0
+    for step in range(steps):
+        terms = step_terms(step)
+        if terms is None:
+            for p, kept in zip(moving, previous):
+                p.data.copy_(kept)
+            for group in optimizer.param_groups:
+                group["lr"] *= 0.5
+            halvings += 1
+            log(f"fit-shape: {phase} step {step} gave an empty shape; undone, step size halved")
+            continue
+        optimizer.zero_grad(set_to_none=True)
+        terms["total"].backward()
+        previous = [p.detach().clone() for p in moving]
+        total = float(terms["total"].detach())
+        if total < best_total:
+            best_total, best, best_step = total, previous, step + 1
+        if all(p.grad is None or torch.isfinite(p.grad).all() for p in moving):
+            optimizer.step()
+        else:
+            log(f"fit-shape: {phase} step {step}: a non-finite gradient; skipped")
+        history.append({"step": step + 1, **{k: float(v.detach()) for k, v in terms.items()}})
+    return history, halvings, best, best_step, previous
+
+
 def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitConfig,
                log: Callable[[str], None], image_term: ImageTerm | None = None
                ) -> tuple[TriangleMesh, Callable[[torch.Tensor], torch.Tensor], dict[str, Any]]:
@@ -368,37 +405,18 @@ def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitCon
     chamfer_zs_start = _chamfer(candidates[best_seed], truth) if truth is not None else None
     z = latent(best_seed, dim).clone().requires_grad_(True)
     moving = [z, *decoder, *([image_term.z_da] if image_term is not None else [])]
-    previous = [p.detach().clone() for p in moving]
     groups = [{"params": [z], "lr": config.zs_lr}]
     if decoder:
         groups.append({"params": decoder, "lr": config.decoder_lr})
     if image_term is not None:
         groups.append({"params": [image_term.z_da], "lr": config.zda_lr})
-    optimizer = torch.optim.Adam(groups)
-    history, halvings = [], 0
-    best_total, best, best_step = float("inf"), previous, 0  # the lowest-loss latent seen: noisy steps end anywhere
-    for step in range(config.zs_steps):
+
+    def step_terms(step: int) -> dict[str, torch.Tensor] | None:
         surface = shape_model.differentiable_surface(z, resolution=config.extract_resolution)
-        if surface is None:  # this z_s has no surface: undo the last step, take half of it
-            for p, kept in zip(moving, previous):
-                p.data.copy_(kept)
-            for group in optimizer.param_groups:
-                group["lr"] *= 0.5
-            halvings += 1
-            log(f"fit-shape: z_s step {step} gave an empty shape; undone, step size halved")
-            continue
-        terms = _step_losses(*surface, targets, fitted, config, step, image_term)[1]
-        optimizer.zero_grad(set_to_none=True)
-        terms["total"].backward()
-        previous = [p.detach().clone() for p in moving]
-        total = float(terms["total"].detach())
-        if total < best_total:
-            best_total, best, best_step = total, previous, step + 1
-        if all(p.grad is None or torch.isfinite(p.grad).all() for p in moving):
-            optimizer.step()
-        else:
-            log(f"fit-shape: z_s step {step}: a non-finite gradient; skipped")
-        history.append({"step": step + 1, **{k: float(v.detach()) for k, v in terms.items()}})
+        return None if surface is None else _step_losses(*surface, targets, fitted, config, step, image_term)[1]
+
+    history, halvings, best, best_step, previous = _descend(moving, torch.optim.Adam(groups), config.zs_steps,
+                                                            step_terms, log, "z_s")
     if config.zs_keep_best:
         for p, kept in zip(moving, best):
             p.data.copy_(kept)
@@ -435,47 +453,32 @@ def fit_grid(field: Callable[[torch.Tensor], torch.Tensor], targets: Targets, fi
     A decoder answers a loss on one part by moving the whole shape; a grid node moves only the
     surface around it, so the free-space term can open a gap (between a chair back's slats) without
     eroding the rest, a change of topology the vertex phase cannot make. Ends on the lowest-loss step;
-    a step that empties the grid is undone with half the step size.
+    a step that empties the grid is undone with half the step size (:func:`_descend`).
     """
     grid = OccupancyGrid.from_field(field, config.grid_resolution, LEVEL)
     moving = [grid.values, *([image_term.z_da] if image_term is not None else [])]
     optimizer = torch.optim.Adam([{"params": [grid.values], "lr": config.grid_lr}]
                                  + ([{"params": [image_term.z_da], "lr": config.zda_lr}] if image_term is not None else []))
-    history, previous = [], [p.detach().clone() for p in moving]
-    best_total, best, best_step = float("inf"), previous, 0
-    for step in range(config.grid_steps):
+
+    def step_terms(step: int) -> dict[str, torch.Tensor] | None:
         mesh = grid.mesh(LEVEL)
         if mesh is None:
-            for p, kept in zip(moving, previous):
-                p.data.copy_(kept)
-            for group in optimizer.param_groups:
-                group["lr"] *= 0.5
-            log(f"fit-shape: grid step {step} emptied the shape; undone, step size halved")
-            continue
+            return None
         vertices = attach_iso_surface_gradient(torch.as_tensor(mesh.vertices, dtype=torch.float32), grid)
         maps, terms = _step_losses(vertices, mesh.faces, targets, fitted, config, step, image_term)
         rays = ray_silhouette_terms(grid, targets.cameras[fitted], maps.mask, targets.mask[fitted],
                                     config.rays_per_view, config.ray_samples, level=LEVEL, seed=step)
-        terms = {**terms, **rays, "total": terms["total"] + config.ray_weight * rays["free"]
-                 + config.ray_hit_weight * rays["hit"]}
-        optimizer.zero_grad(set_to_none=True)
-        terms["total"].backward()
-        previous = [p.detach().clone() for p in moving]
-        total = float(terms["total"].detach())
-        if total < best_total:
-            best_total, best, best_step = total, previous, step
-        if all(p.grad is None or torch.isfinite(p.grad).all() for p in moving):
-            optimizer.step()
-        else:
-            log(f"fit-shape: grid step {step}: a non-finite gradient; skipped")
-        history.append({"step": step + 1, **{k: float(v.detach()) for k, v in terms.items()}})
+        return {**terms, **rays, "total": terms["total"] + config.ray_weight * rays["free"]
+                + config.ray_hit_weight * rays["hit"]}
+
+    history, _, best, best_step, _ = _descend(moving, optimizer, config.grid_steps, step_terms, log, "grid")
     for p, kept in zip(moving, best):
         p.data.copy_(kept)
     mesh = grid.mesh(LEVEL)
     if history:
-        end = next(h for h in history if h["step"] == best_step + 1)
-        log(f"fit-shape: grid fitted, mask loss {history[0]['mask']:.4f} → {end['mask']:.4f} (step {best_step + 1})")
-    return mesh, {"grid_history": history, "grid_end_step": best_step + 1,
+        end = next(h for h in history if h["step"] == best_step)
+        log(f"fit-shape: grid fitted, mask loss {history[0]['mask']:.4f} → {end['mask']:.4f} (step {best_step})")
+    return mesh, {"grid_history": history, "grid_end_step": best_step,
                   **({"z_da": image_term.z_da.detach()[0].tolist()} if image_term is not None else {})}
 
 

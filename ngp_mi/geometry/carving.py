@@ -31,7 +31,7 @@ from __future__ import annotations
 import torch
 
 from ngp_mi.camera import Camera
-from ngp_mi.geometry.extract import Field, field_grid, grid_mesh
+from ngp_mi.geometry.extract import Field, default_coarse, field_grid, grid_mesh
 from ngp_mi.geometry.mesh import TriangleMesh
 from ngp_mi.geometry.occupancy import DOMAIN
 
@@ -49,8 +49,7 @@ class OccupancyGrid(torch.nn.Module):
     @classmethod
     def from_field(cls, field: Field, resolution: int, level: float, half: float = DOMAIN) -> "OccupancyGrid":
         """The grid of ``field``'s values (coarse to fine: exact near the level set)."""
-        coarse = next(c for c in range(min(32, resolution), 0, -1) if resolution % c == 0)
-        return cls(torch.from_numpy(field_grid(field, resolution, coarse, level, half)[0]), half)
+        return cls(torch.from_numpy(field_grid(field, resolution, default_coarse(resolution), level, half)[0]), half)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """(P, 3) → (P,) trilinear values."""
@@ -68,9 +67,7 @@ def pixel_ray_segments(camera: Camera, pixels: torch.Tensor, half: float = DOMAI
     """World-space unit rays through the centres of ``pixels`` (P,) (flat indices y·W + x) and their
     segment [t0, t1] inside the cube ``[-half, half]³`` (slab test); returns origin (3,), directions
     (P, 3), t0, t1 (P,) with t1 ≤ t0 for a ray that misses the cube."""
-    x = (pixels % camera.width).double() + 0.5
-    y = torch.div(pixels, camera.width, rounding_mode="floor").double() + 0.5
-    local = torch.stack([(x - camera.cx) / camera.focal_px, (y - camera.cy) / camera.focal_px, torch.ones_like(x)], -1)
+    local = torch.from_numpy(camera.pixel_rays().reshape(-1, 3))[pixels]  # camera space, z = 1
     direction = local @ torch.as_tensor(camera.R, dtype=torch.float64)  # Rᵀ · local, camera → world
     direction = direction / direction.norm(dim=-1, keepdim=True)
     origin = torch.as_tensor(camera.position, dtype=torch.float64)

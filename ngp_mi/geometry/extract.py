@@ -62,6 +62,12 @@ def _evaluate(field: Field, points: np.ndarray, chunk: int) -> np.ndarray:
     return out
 
 
+def default_coarse(resolution: int, most: int = 32) -> int:
+    """The coarse grid of a coarse-to-fine extraction: the largest divisor of ``resolution`` up to
+    ``most`` (24 for 48³, 32 for 64³ and 96³)."""
+    return next(c for c in range(min(most, resolution), 0, -1) if resolution % c == 0)
+
+
 def field_grid(field: Field, resolution: int, coarse: int = 32, level: float = 0.0, half: float = DOMAIN,
                chunk: int = 65536) -> tuple[np.ndarray, int]:
     """Field values on the ``(R+1)³`` nodes, coarse to fine; returns (values, number of evaluations)."""

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ngp_mi.geometry.extract import Extraction, attach_iso_surface_gradient, extract_mesh
+from ngp_mi.geometry.extract import Extraction, attach_iso_surface_gradient, default_coarse, extract_mesh
 from ngp_mi.geometry.mesh import TriangleMesh
 from ngp_mi.geometry.occupancy import grid_points
 from ngp_mi.models.base import BaseModel, config_from_dict
@@ -169,7 +169,7 @@ class ShapeModel(BaseModel):
         passes through; a grid much coarser than that misses thin parts."""
         self.decoder.eval()
         if coarse is None:
-            coarse = next(c for c in range(min(32, resolution), 0, -1) if resolution % c == 0)
+            coarse = default_coarse(resolution)
         return extract_mesh(self.field(code.detach()), resolution, LEVEL, coarse=coarse, inside_above=True)
 
     def shape(self, z: torch.Tensor, resolution: int = 128, coarse: int | None = None) -> Extraction:
