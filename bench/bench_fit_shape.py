@@ -51,6 +51,9 @@ PRIOR_SETTINGS = {
     "(c) after (b) and (d): the field on a grid, free-space rays, then vertices, masks only": (
         {"start": "zs", "fit_decoder": True, "grid_steps": 60, "lr": 1e-2, "depth_weight": 0.0, "image_weight": 0.0},
         False),
+    "(c) after (b) and (d), the 8 views and their mirror images (--mirror x), masks only": (
+        {"start": "zs", "fit_decoder": True, "grid_steps": 60, "lr": 1e-2, "depth_weight": 0.0, "image_weight": 0.0,
+         "mirror": "x"}, False),
 }
 
 

@@ -66,6 +66,9 @@ from ngp_mi.render.depth import depth_of_hits, project_depth
 from ngp_mi.viz import chw_to_uint8, depth_to_uint8, labelled_grid, linear_to_srgb, save_animation, save_png
 
 
+MIRROR_AXES = ("x", "y", "z")
+
+
 @dataclasses.dataclass(frozen=True)
 class FitConfig:
     targets: str  # a render-dataset folder
@@ -89,6 +92,7 @@ class FitConfig:
     ray_hit_weight: float = 0.0  # and its hit term (max along a target's ray ≥ ℓ): ambiguous where, so off
     rays_per_view: int = 128  # rays of it per view and step, drawn where the mesh and the target mask differ
     ray_samples: int = 64  # occupancy samples per ray
+    mirror: str = ""  # "x", "y" or "z": the shape is mirror-symmetric about that axis's plane; fitted views mirrored
     sphere_radius: float = 0.4
     sphere_subdivisions: int = 4
     mask_weight: float = 1.0
@@ -111,6 +115,8 @@ class FitConfig:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
         if self.steps < (0 if self.start == "zs" else 1):
             raise ValueError(f"--steps must be >= 1 (0 only with --start zs: the latent phase alone), got {self.steps}")
+        if self.mirror not in ("", *MIRROR_AXES):
+            raise ValueError(f"--mirror must be one of {', '.join(MIRROR_AXES)}, got {self.mirror!r}")
         if self.mesh_format not in ("obj", "ply"):
             raise ValueError(f"--format must be obj or ply, got {self.mesh_format!r}")
         if self.fit_decoder and self.start != "zs":
@@ -239,6 +245,35 @@ def load_targets(root: str | Path, shape_id: str | None = None) -> Targets:
     return Targets(cameras, stack(masks), stack(depths), mine[0],
                    torch.from_numpy(np.stack(images).astype(np.float32)) if with_images else None,
                    lights if with_images else None)
+
+
+def mirror_views(targets: Targets, fitted: int, axis: str) -> Targets:
+    """The targets with each of the first ``fitted`` views' mirror image added after them (held-out
+    views stay last), for a shape symmetric about the plane through the origin normal to ``axis``
+    (M = diag(±1) flipping that axis; procedural chairs and cars about x).
+
+    For a symmetric shape S = M S, a camera (R, t) sees at pixel u what the camera
+    (F R M, F t) with principal point W − c_x sees at W − u (F = diag(−1, 1, 1) flips the image's
+    x axis, so F R M is again a rotation): the mirrored view is the target flipped left–right,
+    under the mirrored lights, with the same depths. Eight views of a chair become sixteen
+    without rendering anything."""
+    flip = np.diag([-1.0, 1.0, 1.0])
+    mirror = np.diag([-1.0 if k == MIRROR_AXES.index(axis) else 1.0 for k in range(3)])
+    cameras = [dataclasses.replace(c, R=flip @ c.R @ mirror, t=flip @ c.t, cx=c.width - c.cx, theta_deg=None,
+                                   phi_deg=None) for c in targets.cameras[:fitted]]
+
+    def both(views: torch.Tensor | None) -> torch.Tensor | None:
+        return None if views is None else torch.cat([views[:fitted], views[:fitted].flip(-1), views[fitted:]])
+
+    lights = None
+    if targets.lights is not None:
+        def mirrored(light: Light) -> Light:
+            field = "direction" if hasattr(light, "direction") else "position"
+            return dataclasses.replace(light, **{field: tuple(mirror @ np.asarray(getattr(light, field), float))})
+        lights = targets.lights[:fitted] + [[mirrored(x) for x in ls] for ls in targets.lights[:fitted]] \
+            + targets.lights[fitted:]
+    return Targets(targets.cameras[:fitted] + cameras + targets.cameras[fitted:], both(targets.mask),
+                   both(targets.depth), targets.record, both(targets.images), lights)
 
 
 def fit_losses(coverage: torch.Tensor, depth: torch.Tensor, target_mask: torch.Tensor,
@@ -523,6 +558,10 @@ def fit_shape(config: FitConfig, out: str | Path, shape_model: Any = None, ngp: 
                          f"{targets.cameras[0].width}×{targets.cameras[0].height} ({config.targets})")
     if not 0 <= config.held_out < n:
         raise ValueError(f"--held-out {config.held_out}: the shape has {n} views; keep at least one to fit")
+    if config.mirror:
+        targets = mirror_views(targets, n - config.held_out, config.mirror)
+        log(f"fit-shape: {n - config.held_out} fitted views and their mirror images about {config.mirror} = 0")
+        n = len(targets.cameras)
     fitted = slice(0, n - config.held_out)
     latent_phase: dict[str, Any] = {}
     if config.start == "zs":
@@ -696,8 +735,13 @@ def _finish(config: FitConfig, out: Path, targets: Targets, param: LargeSteps, u
         for i, row in enumerate(rows):
             row += [tile(target_images[i]), tile(images["start"][i]), tile(images["end"][i])]
         columns += ["target image", f"NGP ({image_term.variant}), start", "NGP, fitted"]
-    save_png(out / "sheet.png", labelled_grid(rows, [f"view {i}{' (held out)' if i >= fitted else ''}, IoU {ious[i]:.3f}"
-                                                     for i in range(n)], columns))
+    own = fitted // 2 if config.mirror else fitted  # with --mirror the second half of the fitted views are mirror images
+
+    def label(i: int) -> str:
+        kind = " (held out)" if i >= fitted else f" (view {i - own} mirrored)" if i >= own else ""
+        return f"view {i}{kind}, IoU {ious[i]:.3f}"
+
+    save_png(out / "sheet.png", labelled_grid(rows, [label(i) for i in range(n)], columns))
     if frames:
         save_animation(out / "progress.gif", frames, fps=6)
     write_json(out / "fit.json", summary)

@@ -480,3 +480,33 @@ def test_the_command_line_runs_phases_b_and_d(chair_views, tiny_run, tmp_path):
     assert latent["decoder_fitted"] and len(latent["grid_history"]) == 2
     config = json.loads((tmp_path / "f" / "fit.json").read_text())["config"]
     assert config["ray_weight"] == 2.0 and config["grid_lr"] == 0.05
+
+
+def test_mirrored_views_are_what_the_mirrored_cameras_see_of_a_symmetric_shape(chair_images):
+    from ngp_mi.commands.fit_shape import mirror_views
+    from ngp_mi.geometry.families import generate
+    from ngp_mi.render.depth import project_depth
+
+    targets = load_targets(chair_images)
+    mirrored = mirror_views(targets, 3, "x")
+    assert len(mirrored.cameras) == 7 and mirrored.cameras[6] is targets.cameras[3]  # the held-out view stays last
+    assert torch.equal(mirrored.mask[3:6], targets.mask[:3].flip(-1)) and torch.equal(mirrored.images[6], targets.images[3])
+    chair = generate("chair", int(targets.record["shape_id"].rsplit("/", 1)[1])).mesh()  # symmetric about x = 0
+    seen = project_depth(torch.as_tensor(chair.vertices, dtype=torch.float32), chair.faces, mirrored.cameras[3:6])
+    assert torch.equal(seen.mask > 0.5, mirrored.mask[3:6] > 0.5)
+    assert torch.allclose(seen.depth * mirrored.mask[3:6], mirrored.depth[3:6], atol=1e-4)
+    light, twin = targets.lights[0][0], mirrored.lights[3][0]
+    moved = "direction" if hasattr(light, "direction") else "position"
+    assert np.allclose(np.asarray(getattr(twin, moved)), np.asarray(getattr(light, moved)) * [-1, 1, 1])
+    # a shape that is not symmetric about x = 0 does not match its mirrored views: the test can fail
+    shifted = torch.as_tensor(chair.vertices + np.array([0.15, 0.0, 0.0]), dtype=torch.float32)
+    assert not torch.equal(project_depth(shifted, chair.faces, mirrored.cameras[3:6]).mask > 0.5, mirrored.mask[3:6] > 0.5)
+
+
+def test_the_command_line_fits_mirrored_views(chair_views, tmp_path):
+    assert main(["fit-shape", "--targets", str(chair_views), "--out", str(tmp_path / "f"), "--held-out", "2",
+                 "--steps", "2", "--mirror", "x"]) == 0
+    summary = json.loads((tmp_path / "f" / "fit.json").read_text())
+    assert summary["views"] == 10 and summary["fitted_views"] == 8 and summary["config"]["mirror"] == "x"
+    with pytest.raises(ValueError, match="--mirror must be one of x, y, z"):
+        FitConfig(str(chair_views), mirror="w")
