@@ -269,7 +269,7 @@ def mirror_views(targets: Targets, fitted: int, axis: str) -> Targets:
     if targets.lights is not None:
         def mirrored(light: Light) -> Light:
             field = "direction" if hasattr(light, "direction") else "position"
-            return dataclasses.replace(light, **{field: tuple(mirror @ np.asarray(getattr(light, field), float))})
+            return dataclasses.replace(light, **{field: tuple(float(v) for v in mirror @ np.asarray(getattr(light, field)))})
         lights = targets.lights[:fitted] + [[mirrored(x) for x in ls] for ls in targets.lights[:fitted]] \
             + targets.lights[fitted:]
     return Targets(targets.cameras[:fitted] + cameras + targets.cameras[fitted:], both(targets.mask),
