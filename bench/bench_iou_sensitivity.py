@@ -5,7 +5,7 @@ For the held-out views of each procedural shape of a ``render-dataset`` folder (
 
 * the true mesh through Π_v — the ceiling (1 when the targets are Π_v's own masks);
 * the target mask dilated / eroded by one pixel (3 × 3 cross) — a one-pixel error all round;
-* the true mesh with every vertex moved along its normal by ± a fraction of a pixel (the pixel's
+* the true mesh with every vertex moved along its (trimesh) vertex normal by ± a fraction of a pixel (the pixel's
   size at the object: camera distance / focal length) — a uniform sub-pixel surface error.
 
 It says what accuracy the goal asks of the surface that no fitted view's outline constrains.
@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import trimesh
 from scipy import ndimage
 
 from ngp_mi.atomic import write_json
@@ -31,15 +32,6 @@ from ngp_mi.geometry.occupancy import voxel_iou
 from ngp_mi.render.depth import project_depth
 
 OFFSETS_PX = (-0.5, -0.25, -0.1, 0.1, 0.25, 0.5)
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals."""
-    normals = np.zeros_like(vertices)
-    face_normals = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
-    for corner in range(3):
-        np.add.at(normals, faces[:, corner], face_normals)
-    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
 
 
 def held_out_ious(vertices: np.ndarray, faces: np.ndarray, cameras: list, masks: torch.Tensor) -> list[float]:
@@ -66,13 +58,12 @@ def main() -> None:
         truth = generate(targets.record["origin"], int(shape_id.rsplit("/", 1)[1])).mesh()
         vertices, faces = np.asarray(truth.vertices, np.float64), np.asarray(truth.faces)
         rows.setdefault("the true mesh through Π_v (ceiling)", []).extend(held_out_ious(vertices, faces, cameras, masks))
-        for name, morph in (("the target dilated by 1 px", ndimage.binary_dilation),
-                            ("the target eroded by 1 px", ndimage.binary_erosion)):
-            for mask in masks[:, 0].numpy() > 0.5:
-                rows.setdefault(name, []).append(voxel_iou(morph(mask), mask))
         for mask in masks[:, 0].numpy() > 0.5:
-            boundary.append((mask & ~ndimage.binary_erosion(mask)).sum() / mask.sum())
-        normals = vertex_normals(vertices, faces)
+            eroded = ndimage.binary_erosion(mask)
+            rows.setdefault("the target dilated by 1 px", []).append(voxel_iou(ndimage.binary_dilation(mask), mask))
+            rows.setdefault("the target eroded by 1 px", []).append(voxel_iou(eroded, mask))
+            boundary.append((mask & ~eroded).sum() / mask.sum())
+        normals = trimesh.Trimesh(vertices, faces, process=False).vertex_normals  # unit, face-angle weighted
         for offset in OFFSETS_PX:
             ious = []
             for camera, mask in zip(cameras, masks):

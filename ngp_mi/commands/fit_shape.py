@@ -258,7 +258,7 @@ def mirror_views(targets: Targets, fitted: int, axis: str) -> Targets:
     under the mirrored lights, with the same depths. Eight views of a chair become sixteen
     without rendering anything."""
     flip = np.diag([-1.0, 1.0, 1.0])
-    mirror = np.diag([-1.0 if k == MIRROR_AXES.index(axis) else 1.0 for k in range(3)])
+    mirror = np.diag(np.where(np.arange(3) == MIRROR_AXES.index(axis), -1.0, 1.0))
     cameras = [dataclasses.replace(c, R=flip @ c.R @ mirror, t=flip @ c.t, cx=c.width - c.cx, theta_deg=None,
                                    phi_deg=None) for c in targets.cameras[:fitted]]
 
