@@ -387,6 +387,9 @@ def fit_shape_flags(p: argparse.ArgumentParser) -> None:
                    help="the shape is mirror-symmetric about the plane normal to this axis (chairs and cars of "
                         "render-dataset: x): each fitted view's mirror image is fitted too")
     p.add_argument("--mask-weight", type=float, default=default(FitConfig, "mask_weight"), help="(default: %(default)s)")
+    p.add_argument("--binary-masks", action="store_true",
+                   help="fit the binary masks even where the targets carry each pixel's coverage (the alpha of "
+                        "render-dataset's images, a soft matte), which places outlines within a pixel")
     p.add_argument("--depth-weight", type=float, default=default(FitConfig, "depth_weight"),
                    help="0 fits masks only (default: %(default)s)")
     p.add_argument("--image-weight", type=float, default=default(FitConfig, "image_weight"),
@@ -408,6 +411,7 @@ def fit_shape(args: argparse.Namespace) -> int:
 
     config = FitConfig(targets=args.targets, shape_id=args.shape_id, held_out=args.held_out, steps=args.steps,
                        lr=args.lr, lam=args.lam, start=args.start, mask_weight=args.mask_weight,
+                       soft_masks=not args.binary_masks,
                        depth_weight=args.depth_weight, silhouette=not args.no_silhouette, spp=args.spp,
                        boundary_spp=args.boundary_spp, zs_steps=args.zs_steps, image_weight=args.image_weight,
                        fit_decoder=args.fit_decoder, decoder_lr=args.decoder_lr, mesh_format=args.format,

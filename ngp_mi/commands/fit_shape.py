@@ -20,7 +20,11 @@ the named terms of :func:`fit_losses`,
 
     L = w_mask · mean (c − m)² + w_depth · mean m·(d̄ − c·d)² + w_image · mean |I − I_target|,
 
-m, d the target masks and depths. The depth term only looks where the target has the object (over
+m, d the target masks and depths. Where the targets carry the pixels' coverage — the alpha of
+render-dataset's path-traced images, or a user's soft alpha matte — m in the mask term is that
+coverage (``soft_masks``): it is what c estimates, and it places an outline within a pixel, where
+a binary mask (is the pixel's centre on the object?) only says on which side of the pixel's centre
+it runs; the binary masks still give the IoU. The depth term only looks where the target has the object (over
 the target's background it would pull the surface towards the camera; the mask term shrinks the
 coverage there instead). The image term (map networks given, targets with images) forms NGP's image
 I of each view from d̄ / c and c by G_n, G_da(z_da), R_diff (⊕ G_sp^real) in linear radiance
@@ -48,6 +52,7 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
+from ngp_mi import lock
 from ngp_mi.atomic import atomic_path, write_json, write_text
 from ngp_mi.camera import Camera
 from ngp_mi.data.exr import read_exr
@@ -96,6 +101,7 @@ class FitConfig:
     sphere_radius: float = 0.4
     sphere_subdivisions: int = 4
     mask_weight: float = 1.0
+    soft_masks: bool = True  # the mask term fits the targets' coverage (alpha) where they have it
     depth_weight: float = 1.0
     image_weight: float = 1.0  # with map networks (--model) and path-traced targets; else off
     zda_lr: float = 5e-2  # Adam's step for the appearance code z_da, fitted with the image term
@@ -141,6 +147,12 @@ class Targets:
     record: dict[str, Any]  # the first view's manifest record
     images: torch.Tensor | None = None  # (N, 3, H, W) path-traced, linear radiance (render-dataset --real-spp)
     lights: list[list[Light]] | None = None  # each image's lights
+    coverage: torch.Tensor | None = None  # (N, 1, H, W) each pixel's covered fraction (alpha), where known
+
+    @property
+    def fit_mask(self) -> torch.Tensor:
+        """What the mask term fits: the coverage where the targets have it, else the binary masks."""
+        return self.mask if self.coverage is None else self.coverage
 
 
 CAMERAS_FILE = "cameras.json"
@@ -165,7 +177,7 @@ def load_user_targets(root: str | Path) -> Targets:
                          '{"views": [{"image": ..., "K": ..., "E": ...}, ...]}') from None
     if not isinstance(views, list) or not views:
         raise ValueError(f"{path}: 'views' must be a non-empty list")
-    cameras, masks, images, lights = [], [], [], []
+    cameras, masks, alphas, images, lights = [], [], [], [], []
     for k, view in enumerate(views):
         where = f"{path}: view {k}"
         if not isinstance(view, dict) or "image" not in view:
@@ -198,13 +210,15 @@ def load_user_targets(root: str | Path) -> Targets:
         if mask.shape != (height, width):
             raise ValueError(f"{where}: the mask is {mask.shape[1]}x{mask.shape[0]}, the image {width}x{height}")
         cameras.append(camera)
+        alphas.append(mask)
         masks.append((mask > 0.5).astype(np.float32))
         images.append(image * masks[-1][..., None])
         lights.append([light_from_dict(light, f"{where}, light {j}") for j, light in enumerate(view["lights"])]
                       if "lights" in view else overhead_rig())
     mask_tensor = torch.from_numpy(np.stack(masks)[:, None])
     return Targets(cameras, mask_tensor, None, {"shape_id": root.name, "source": "user"},
-                   torch.from_numpy(np.stack(images).transpose(0, 3, 1, 2).copy()), lights)
+                   torch.from_numpy(np.stack(images).transpose(0, 3, 1, 2).copy()), lights,
+                   torch.from_numpy(np.stack(alphas)[:, None].copy()))
 
 
 def load_targets(root: str | Path, shape_id: str | None = None) -> Targets:
@@ -218,7 +232,7 @@ def load_targets(root: str | Path, shape_id: str | None = None) -> Targets:
     if not mine:
         shapes = sorted({r["shape_id"] for r in records})
         raise ValueError(f"{root}: no views of shape {shape_id!r} (it has {', '.join(shapes[:5])}…)")
-    cameras, masks, depths, images, lights = [], [], [], [], []
+    cameras, masks, depths, images, lights, alphas = [], [], [], [], [], []
     with_images = all("real" in r["files"] and isinstance(r.get("lights"), list) for r in mine)
     for r in mine:
         channels = set(r["channels"])
@@ -235,16 +249,20 @@ def load_targets(root: str | Path, shape_id: str | None = None) -> Targets:
         masks.append(maps["mask"])
         depths.append(maps["depth"] * maps["mask"])
         if with_images:
-            image = read_exr(Path(root) / r["files"]["real"], ["rgb"])["rgb"]
-            if not np.isfinite(image).all():
+            real = read_exr(Path(root) / r["files"]["real"])
+            if "rgb" not in real:
+                raise ValueError(f"{root}/{r['files']['real']}: no 'rgb' layer, has {sorted(real)}")
+            if not all(np.isfinite(values).all() for values in real.values()):
                 raise ValueError(f"{root}/{r['files']['real']}: the image has non-finite values")
-            images.append(image.transpose(2, 0, 1))
+            images.append(real["rgb"].transpose(2, 0, 1))
+            alphas.append(real.get("alpha"))  # datasets rendered before alpha was written have none
             lights.append([light_from_dict(light, f"{root}: view {r['view']} of {shape_id}, light {k}")
                            for k, light in enumerate(r["lights"])])
     stack = lambda xs: torch.from_numpy(np.stack(xs)[:, None].astype(np.float32))  # noqa: E731
     return Targets(cameras, stack(masks), stack(depths), mine[0],
                    torch.from_numpy(np.stack(images).astype(np.float32)) if with_images else None,
-                   lights if with_images else None)
+                   lights if with_images else None,
+                   stack(alphas) if with_images and all(a is not None for a in alphas) else None)
 
 
 def mirror_views(targets: Targets, fitted: int, axis: str) -> Targets:
@@ -273,7 +291,7 @@ def mirror_views(targets: Targets, fitted: int, axis: str) -> Targets:
         lights = targets.lights[:fitted] + [[mirrored(x) for x in ls] for ls in targets.lights[:fitted]] \
             + targets.lights[fitted:]
     return Targets(targets.cameras[:fitted] + cameras + targets.cameras[fitted:], both(targets.mask),
-                   both(targets.depth), targets.record, both(targets.images), lights)
+                   both(targets.depth), targets.record, both(targets.images), lights, both(targets.coverage))
 
 
 def fit_losses(coverage: torch.Tensor, depth: torch.Tensor, target_mask: torch.Tensor,
@@ -359,7 +377,7 @@ def _step_losses(vertices: torch.Tensor, faces: np.ndarray, targets: Targets, fi
                            np.stack([corners.min(0), corners.max(0)]), targets.lights[fitted], config.image_downsample)
         target_image = pool_views(targets.images[fitted], config.image_downsample)
     target_depth = targets.depth[fitted] if targets.depth is not None else None
-    return maps, fit_losses(maps.mask, maps.depth, targets.mask[fitted], target_depth, config.mask_weight,
+    return maps, fit_losses(maps.mask, maps.depth, targets.fit_mask[fitted], target_depth, config.mask_weight,
                             config.depth_weight, image, target_image, config.image_weight)
 
 
@@ -545,10 +563,20 @@ def fit_shape(config: FitConfig, out: str | Path, shape_model: Any = None, ngp: 
               log: Callable[[str], None] = print) -> dict[str, Any]:
     """Run (or resume) the fit; returns the summary written to ``fit.json``. ``shape_model``: the shape
     prior (:class:`ngp_mi.models.shape.ShapeModel`) for ``start="zs"``; ``ngp``: the map networks
-    (:class:`ngp_mi.pipeline.NGP`) for the image term, z_da fitted with it."""
+    (:class:`ngp_mi.pipeline.NGP`) for the image term, z_da fitted with it. One fit at a time writes
+    into ``out``: a second one is refused, naming the first (:mod:`ngp_mi.lock`)."""
     out = Path(out)
+    with lock.exclusive(out / "fit-shape.lock", f"the fit in {out}"):
+        return _fit_shape(config, out, shape_model, ngp, log)
+
+
+def _fit_shape(config: FitConfig, out: Path, shape_model: Any, ngp: Any, log: Callable[[str], None]) -> dict[str, Any]:
     targets = load_targets(config.targets, config.shape_id)
     image_term = _image_term(config, targets, ngp, log)
+    if not config.soft_masks:
+        targets = dataclasses.replace(targets, coverage=None)
+    log("fit-shape: the mask term fits " + ("the images' alpha (each pixel's coverage)" if targets.coverage is not None
+                                            else "the binary masks"))
     if targets.depth is None and config.depth_weight:
         log("fit-shape: the targets have no depths (the user's own images): the depth term is off")
     n = len(targets.cameras)
@@ -702,6 +730,7 @@ def _finish(config: FitConfig, out: Path, targets: Targets, param: LargeSteps, u
     truth = _source_mesh(targets.record)
     summary = {"config": dataclasses.asdict(config), "shape_id": targets.record["shape_id"], "views": n,
                "fitted_views": fitted, "steps": len(history) and history[-1]["step"],
+               "mask_target": "binary" if targets.coverage is None else "coverage",
                "loss_start": history[0]["total"] if history else None,
                "loss_end": history[-1]["total"] if history else None,
                "mask_iou_start": float(np.mean([_iou(before[i, 0], targets.mask[i, 0]) for i in range(fitted)])),
@@ -747,7 +776,8 @@ def _finish(config: FitConfig, out: Path, targets: Targets, param: LargeSteps, u
     write_json(out / "fit.json", summary)
     chamfer = (f"Chamfer-L2 to the true shape {summary['chamfer_start']:.5f} → {summary['chamfer_end']:.5f}; "
                if truth is not None else "")
-    write_text(out / "report.md", f"# fit-shape: {summary['shape_id']}\n\n{fitted} of {n} views fitted, "
+    write_text(out / "report.md", f"# fit-shape: {summary['shape_id']}\n\n{fitted} of {n} views fitted "
+               f"({'their coverage (alpha)' if targets.coverage is not None else 'binary masks'}), "
                f"{summary['steps']} vertex steps"
                + (f"; loss {summary['loss_start']:.5f} → {summary['loss_end']:.5f}" if history else "") + f"; {chamfer}"
                f"mask IoU {summary['mask_iou_fitted']:.3f} on the fitted views"

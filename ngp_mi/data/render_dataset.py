@@ -4,7 +4,8 @@ Layout of ``OUT``::
 
     dataset.json                     the settings (a resumed run must use the same ones)
     maps/<shape id>/<view>.exr       the requested G-buffer channels (``render.gbuffer``)
-    real/<shape id>/<view>.exr|.png  path-traced image, linear EXR + sRGB PNG (``--real-spp`` > 0)
+    real/<shape id>/<view>.exr|.png  path-traced image, linear EXR (``rgb`` and ``alpha``, the pixel's
+                                     box-filtered coverage) + sRGB PNG (``--real-spp`` > 0)
     manifest[.shard-K-of-N].jsonl    one record per finished view
     summary[.shard-K-of-N].json      counts, rate and the reasons of skipped shapes
     render-dataset.log               the log
@@ -353,10 +354,10 @@ def _render_shape(config: DatasetConfig, out: Path, index: int, item: SourceItem
             if real_scene is None or config.lights == "random":
                 emitters = content.emitters if config.lights == "scene" else lights_to_mitsuba(lights)
                 real_scene = build_scene(camera, {**content.shapes, **emitters}, (), {"type": "path", "max_depth": 6},
-                                         spp=config.real_spp)
+                                         spp=config.real_spp, pixel_format="rgba")
             else:
                 set_sensor_camera(real_scene.sensors()[0], camera)
-            image = render(real_scene, seed=derived_seed(config.seed, index, view))[..., :3]
+            image = render(real_scene, seed=derived_seed(config.seed, index, view))  # RGB + coverage
             files["real"] = f"real/{stem}.exr"
             files["real_png"] = f"real/{stem}.png"
 
@@ -365,8 +366,8 @@ def _render_shape(config: DatasetConfig, out: Path, index: int, item: SourceItem
                       metadata={"ngp_mi.shape_id": item.id, "ngp_mi.view": str(view)},
                       half=[c for c in maps if c != "depth"] if config.half else ())
             if image is not None:
-                write_exr(out / files["real"], {"rgb": image}, config.compression)
-                save_png(out / files["real_png"], to_uint8(image))
+                write_exr(out / files["real"], {"rgb": image[..., :3], "alpha": image[..., 3]}, config.compression)
+                save_png(out / files["real_png"], to_uint8(image[..., :3]))
 
         writer.submit(write, {
             "shape_id": item.id, "source": item.kind, "origin": item.origin, "shape_index": index, "view": view,

@@ -58,19 +58,21 @@ def mesh_parts_to_mitsuba(mesh: TriangleMesh, bsdfs: Mapping[int, Mapping[str, A
 
 def build_scene(camera: Camera, shapes: Mapping[str, Any], lights: Iterable[Light] = (),
                 integrator: Mapping[str, Any] | None = None, spp: int = 1, rfilter: str = "box",
-                seed: int = 0) -> Any:
+                seed: int = 0, pixel_format: str = "rgb") -> Any:
     """Load a Mitsuba scene: one sensor at ``camera``, the given shapes and emitters.
 
     The sensor is placed through :func:`set_sensor_camera`, so its pose is a kernel parameter from
     the first render on: moving it to another view of the same resolution reuses the compiled
     kernel. ``integrator`` may name the project's own integrators (:mod:`ngp_mi.render.integrators`).
+    ``pixel_format="rgba"`` adds alpha: the filtered fraction of the pixel's samples whose ray hit
+    the scene (with the box filter, the pixel's coverage).
     """
     mi = backend.mitsuba()
     integrators.register()
     scene: dict[str, Any] = {
         "type": "scene",
         "integrator": dict(integrator or {"type": "path", "max_depth": 3}),
-        "sensor": camera.to_mitsuba(spp=spp, rfilter=rfilter, seed=seed),
+        "sensor": camera.to_mitsuba(spp=spp, rfilter=rfilter, pixel_format=pixel_format, seed=seed),
         **shapes,
         **lights_to_mitsuba(lights),
     }

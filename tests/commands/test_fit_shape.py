@@ -155,6 +155,15 @@ def test_a_killed_fit_resumes_where_its_state_was_saved(chair_views, tmp_path):
                   tmp_path / "resumed")
 
 
+def test_a_second_fit_into_the_same_folder_is_refused(chair_views, tmp_path):
+    from ngp_mi import lock
+
+    with lock.exclusive(tmp_path / "f" / "fit-shape.lock", "a fit"):  # as another process's fit would
+        with pytest.raises(lock.Busy, match="fit-shape.lock"):
+            fit_shape(FitConfig(str(chair_views), steps=1, sphere_subdivisions=2), tmp_path / "f")
+    assert not (tmp_path / "f" / "state").exists()  # nothing of it was written
+
+
 def test_bad_targets_and_settings_are_named(chair_views, tmp_path, capsys):
     with pytest.raises(ValueError, match="no views of shape 'car/000000'"):
         load_targets(chair_views, "car/000000")
@@ -176,6 +185,25 @@ def test_the_loss_terms_are_named_and_zero_at_the_target():
     # depth where the target has no object costs nothing in the depth term (the mask term sees it)
     spill = torch.ones(2, 1, 8, 8)
     assert float(fit_losses(spill, 2.0 * spill, mask, depth, 0.0, 1.0)["total"]) == 0.0
+
+
+def test_the_mask_term_fits_the_images_alpha_where_the_targets_have_it(chair_images, chair_views, tmp_path):
+    from ngp_mi.commands.fit_shape import mirror_views
+
+    targets = load_targets(chair_images)
+    coverage, mask = targets.coverage, targets.mask
+    assert coverage is not None and coverage.shape == mask.shape and targets.fit_mask is coverage
+    soft = (coverage > 0.05) & (coverage < 0.95)
+    assert soft.sum() > 50  # the outline's pixels are partly covered
+    assert torch.equal((coverage > 0.5)[~soft], (mask > 0.5)[~soft])  # and the rest agrees with the masks
+    assert torch.equal(mirror_views(targets, 3, "x").coverage[3:6], coverage[:3].flip(-1))
+    assert load_targets(chair_views).coverage is None  # no images: the binary masks
+    summary = fit_shape(FitConfig(str(chair_images), held_out=1, steps=2, sphere_subdivisions=2, image_weight=0),
+                        tmp_path / "soft", log=lambda _: None)
+    assert summary["mask_target"] == "coverage"
+    assert main(["fit-shape", "--targets", str(chair_images), "--out", str(tmp_path / "binary"), "--held-out", "1",
+                 "--steps", "2", "--image-weight", "0", "--binary-masks"]) == 0
+    assert json.loads((tmp_path / "binary" / "fit.json").read_text())["mask_target"] == "binary"
 
 
 def test_the_shape_prior_starts_the_fit_and_its_latent_is_fitted_first(chair_views, tiny_run, tmp_path):
@@ -510,3 +538,16 @@ def test_the_command_line_fits_mirrored_views(chair_views, tmp_path):
     assert summary["views"] == 10 and summary["fitted_views"] == 8 and summary["config"]["mirror"] == "x"
     with pytest.raises(ValueError, match="--mirror must be one of x, y, z"):
         FitConfig(str(chair_views), mirror="w")
+
+
+def test_a_users_soft_alpha_is_kept_as_coverage(chair_images, tmp_path):
+    from PIL import Image
+
+    folder = tmp_path / "mine"
+    _user_folder(chair_images, folder)
+    rgba = np.asarray(Image.open(folder / "view0.png")).copy()
+    rgba[0, :4, 3] = [0, 100, 128, 255]  # a soft matte's edge
+    Image.fromarray(rgba, "RGBA").save(folder / "view0.png")
+    targets = load_targets(folder)
+    assert torch.allclose(targets.coverage[0, 0, 0, :4], torch.tensor([0, 100, 128, 255]) / 255.0)
+    assert targets.mask[0, 0, 0, :4].tolist() == [0, 0, 1, 1]

@@ -38,6 +38,28 @@ def test_layout_manifest_and_files(tmp_path):
     assert json.loads((tmp_path / "summary.json").read_text())["views_rendered"] == 4
 
 
+def test_the_real_images_alpha_is_the_pixels_coverage(tmp_path):
+    """alpha against an independent coverage: the true chair's Π_v at 8 × 8 sub-pixel centres, pooled."""
+    import torch
+
+    from ngp_mi.camera import Camera
+    from ngp_mi.geometry.families import generate
+    from ngp_mi.render.depth import supersampled_depth_coverage
+
+    run(tmp_path, num_shapes=1, views=1, resolution=32, real_spp=256)
+    r = load_manifest(tmp_path)[0]
+    alpha = read_exr(tmp_path / r["files"]["real"])["alpha"]
+    mask = read_exr(tmp_path / r["files"]["maps"])["mask"]
+    truth = generate("chair", 0).mesh()
+    camera = Camera.from_K_E(np.asarray(r["K"]), np.asarray(r["E"]), r["width"], r["height"])
+    coverage = supersampled_depth_coverage(torch.as_tensor(truth.vertices, dtype=torch.float32), truth.faces,
+                                           camera, 8)[1][0, 0].numpy()
+    edge = (coverage > 0.02) & (coverage < 0.98)
+    assert edge.sum() > 20 and ((alpha > 0.02) & (alpha < 0.98)).sum() > 20  # soft where the outline crosses
+    assert np.abs(alpha - coverage).max() < 0.2 and np.abs(alpha - coverage)[edge].mean() < 0.05
+    assert np.array_equal(alpha[~edge] > 0.5, mask[~edge] > 0.5)  # and the mask's value away from it
+
+
 def test_same_seed_same_files(tmp_path):
     run(tmp_path / "a", real_spp=2)
     run(tmp_path / "b", real_spp=2)
