@@ -24,6 +24,7 @@ convention (diffuse network images are 2 R_diff − 1).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from typing import Any, Callable
@@ -50,6 +51,11 @@ class SpecularConfig:
     # second stage leaves a grey-blue veil over the object. dark_start zeroes the last layer's weights
     # and sets its bias so that I_rs starts at DARK_START (a specular map is mostly black).
     dark_start: bool = False
+    # Beyond the paper (issue 15): G_sp^real is the exponential moving average of the trained
+    # generator's weights, θ̄ ← ema θ̄ + (1 − ema) θ after each step (Polyak averaging, as ProGAN,
+    # StyleGAN and BigGAN evaluate their generators): a short adversarial stage ends at a point that
+    # varies with the seed; the average is taken over its last ~1 / (1 − ema) steps. 0: off.
+    ema: float = 0.0
 
 
 def srgb_encode(linear: torch.Tensor) -> torch.Tensor:
@@ -115,15 +121,37 @@ class SpecularModel(BaseModel):
     def __init__(self, config: SpecularConfig = SpecularConfig()):
         super().__init__()
         self.config = c = config
+        if not 0 <= c.ema < 1:
+            raise ValueError(f"specular.ema must lie in [0, 1), got {c.ema}")
         self.G_sp = define_G(6, 3, c.ngf, c.blocks)
         if c.dark_start:
             start_dark(self.G_sp)
+        if c.ema:  # G_sp holds the average (what inference and export use), G_sp_train the trained weights
+            self.G_sp_train = copy.deepcopy(self.G_sp)
+            self.G_sp.requires_grad_(False)
+            self.network_names = (*type(self).network_names, "G_sp_train")
         self.F_sp = define_G(3, 3, c.ngf, c.blocks)
         self.D_real = define_D(3, c.rf_image, c.ndf)
         self.D_dfr = define_D(3, c.rf_image, c.ndf)
         betas = (c.beta1, 0.999)
-        self.opt_sp_G = torch.optim.Adam([*self.G_sp.parameters(), *self.F_sp.parameters()], lr=c.lr, betas=betas)
+        self.opt_sp_G = torch.optim.Adam([*self.trained_G_sp.parameters(), *self.F_sp.parameters()], lr=c.lr,
+                                         betas=betas)
         self.opt_sp_D = torch.optim.Adam([*self.D_real.parameters(), *self.D_dfr.parameters()], lr=c.lr, betas=betas)
+
+    @property
+    def trained_G_sp(self) -> ResnetGenerator:
+        """The generator the optimiser moves: G_sp itself, or with ``ema`` the copy G_sp averages."""
+        return self.G_sp_train if self.config.ema else self.G_sp
+
+    @torch.no_grad()
+    def update_average(self) -> None:
+        """θ̄ ← ema θ̄ + (1 − ema) θ for G_sp's weights (buffers copied); nothing without ``ema``."""
+        if not self.config.ema:
+            return
+        for average, trained in zip(self.G_sp.parameters(), self.G_sp_train.parameters()):
+            average.lerp_(trained, 1.0 - self.config.ema)
+        for average, trained in zip(self.G_sp.buffers(), self.G_sp_train.buffers()):
+            average.copy_(trained)
 
     @classmethod
     def config_from_recipe(cls, recipe: dict[str, Any]) -> SpecularConfig | None:
@@ -135,8 +163,10 @@ class SpecularModel(BaseModel):
 
     def specular(self, normal: torch.Tensor, diffuse_net: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """I_rs = G_sp^real(N, I_df): linear radiance in [0, 1], zero off the object. ``diffuse_net``
-        is the map networks' diffuse image, 2 R_diff − 1."""
-        return mask * (self.G_sp(torch.cat([normal, diffuse_net], 1)) + 1) / 2
+        is the map networks' diffuse image, 2 R_diff − 1. In training mode the trained generator
+        (:attr:`trained_G_sp`), else G_sp (with ``ema``, the average)."""
+        generator = self.trained_G_sp if self.training else self.G_sp
+        return mask * (generator(torch.cat([normal, diffuse_net], 1)) + 1) / 2
 
     def compose(self, normal: torch.Tensor, diffuse_net: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """The NGP image of the paper (Sec. 5 "NGP"): R_diff / π ⊕ G_sp^real(N, I_df), linear radiance."""
@@ -185,6 +215,7 @@ class SpecularModel(BaseModel):
         loss_G = (terms["gan_real"] + terms["gan_dfr"]
                   + self.config.lambda_cycle * (terms["cyc_generated"] + terms["cyc_real"]))
         self.optimizer_step(self.opt_sp_G, loss_G)
+        self.update_average()
         for D in (self.D_real, self.D_dfr):
             D.requires_grad_(True)
         loss_D = (losses.discriminator_loss(self.D_real, *self._for_d["real"])

@@ -91,3 +91,34 @@ def test_a_dark_start_g_sp_adds_almost_no_light_at_first_and_still_learns():
     dark.sum().backward()
     last = dark_model.G_sp.output_conv
     assert last.weight.grad.abs().sum() > 0 and torch.isfinite(last.weight.grad).all()
+
+
+def test_with_ema_g_sp_is_the_moving_average_of_the_trained_generator(data, tmp_path):
+    """ema (issue 15): the optimiser moves G_sp_train; G_sp follows θ̄ ← ema θ̄ + (1 − ema) θ and is
+    what eval mode (inference, export) uses; a checkpoint keeps both."""
+    from ngp_mi.models.checkpoint import load_weights
+
+    torch.manual_seed(0)
+    maps, model = MapsModel(TINY_MAPS), SpecularModel(SpecularConfig(**{**TINY.__dict__, "ema": 0.9}))
+    assert "G_sp_train" in model.networks() and "G_sp_train" not in SpecularModel(TINY).networks()
+    average = [p.detach().clone() for p in model.G_sp.parameters()]
+    depth, real = next(iter(zip(*data)))
+    model.optimize(maps, depth, real)
+    trained = list(model.G_sp_train.parameters())
+    assert any(not torch.equal(a, b) for a, b in zip(average, trained))  # the trained copy moved
+    for before, after, now in zip(average, model.G_sp.parameters(), trained):
+        assert torch.allclose(after, 0.9 * before + 0.1 * now, atol=1e-6) and not after.requires_grad
+    normal = torch.nn.functional.normalize(torch.randn(1, 3, 32, 32), dim=1)
+    diffuse, mask = torch.rand(1, 3, 32, 32) * 2 - 1, torch.ones(1, 1, 32, 32)
+    with torch.no_grad():
+        training = model.specular(normal, diffuse, mask)
+        model.eval()
+        inference = model.specular(normal, diffuse, mask)
+        assert torch.allclose(inference, (model.G_sp(torch.cat([normal, diffuse], 1)) + 1) / 2)
+        assert not torch.allclose(training, inference)
+    twin = SpecularModel(SpecularConfig(**{**TINY.__dict__, "ema": 0.9}))
+    load_weights(twin.networks(), {f"{n}.{k}": v for n, net in model.networks().items()
+                                   for k, v in net.state_dict().items()}, tmp_path / "x")
+    assert all(torch.equal(a, b) for a, b in zip(twin.G_sp_train.parameters(), trained))
+    with pytest.raises(ValueError, match="specular.ema"):
+        SpecularModel(SpecularConfig(**{**TINY.__dict__, "ema": 1.0}))
