@@ -24,9 +24,9 @@ m, d the target masks and depths. Where the targets carry the pixels' coverage �
 render-dataset's path-traced images, or a user's soft alpha matte — m in the mask term is that
 coverage (``soft_masks``): it is what c estimates, and it places an outline within a pixel, where
 a binary mask (is the pixel's centre on the object?) only says on which side of the pixel's centre
-it runs; the binary masks still give the IoU. The depth term only looks where the target has the object (over
-the target's background it would pull the surface towards the camera; the mask term shrinks the
-coverage there instead). The image term (map networks given, targets with images) forms NGP's image
+it runs; the binary masks still give the IoU. The depth term only looks where the target has the
+object (over the target's background it would pull the surface towards the camera; the mask term
+shrinks the coverage there instead). The image term (map networks given, targets with images) forms NGP's image
 I of each view from d̄ / c and c by G_n, G_da(z_da), R_diff (⊕ G_sp^real) in linear radiance
 (:func:`fit_images`), the appearance code z_da fitted beside the shape. A step that loses the shape
 from every view or gives a non-finite loss or gradient is undone and retried with half the step size.
@@ -216,9 +216,10 @@ def load_user_targets(root: str | Path) -> Targets:
         lights.append([light_from_dict(light, f"{where}, light {j}") for j, light in enumerate(view["lights"])]
                       if "lights" in view else overhead_rig())
     mask_tensor = torch.from_numpy(np.stack(masks)[:, None])
+    soft = any(((a > 0) & (a < 1)).any() for a in alphas)  # a matte, not a binary mask
     return Targets(cameras, mask_tensor, None, {"shape_id": root.name, "source": "user"},
                    torch.from_numpy(np.stack(images).transpose(0, 3, 1, 2).copy()), lights,
-                   torch.from_numpy(np.stack(alphas)[:, None].copy()))
+                   torch.from_numpy(np.stack(alphas)[:, None].copy()) if soft else None)
 
 
 def load_targets(root: str | Path, shape_id: str | None = None) -> Targets:

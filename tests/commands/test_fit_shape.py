@@ -545,6 +545,7 @@ def test_a_users_soft_alpha_is_kept_as_coverage(chair_images, tmp_path):
 
     folder = tmp_path / "mine"
     _user_folder(chair_images, folder)
+    assert load_targets(folder).coverage is None  # a binary alpha is a mask
     rgba = np.asarray(Image.open(folder / "view0.png")).copy()
     rgba[0, :4, 3] = [0, 100, 128, 255]  # a soft matte's edge
     Image.fromarray(rgba, "RGBA").save(folder / "view0.png")
