@@ -56,6 +56,11 @@ class SpecularConfig:
     # StyleGAN and BigGAN evaluate their generators): a short adversarial stage ends at a point that
     # varies with the seed; the average is taken over its last ~1 / (1 − ema) steps. 0: off.
     ema: float = 0.0
+    # Beyond the paper (issue 15): a grey specular map, I_rs the mean of G_sp^real's three channels.
+    # The real images' materials are dielectrics, whose highlights carry the light's colour, not the
+    # surface's; an RGB map can instead repaint the diffuse image's colour errors (seen: a blue tint
+    # along thin rails where the reference has no highlight).
+    grey: bool = False
 
 
 def srgb_encode(linear: torch.Tensor) -> torch.Tensor:
@@ -166,7 +171,10 @@ class SpecularModel(BaseModel):
         is the map networks' diffuse image, 2 R_diff − 1. In training mode the trained generator
         (:attr:`trained_G_sp`), else G_sp (with ``ema``, the average)."""
         generator = self.trained_G_sp if self.training else self.G_sp
-        return mask * (generator(torch.cat([normal, diffuse_net], 1)) + 1) / 2
+        specular = (generator(torch.cat([normal, diffuse_net], 1)) + 1) / 2
+        if self.config.grey:
+            specular = specular.mean(1, keepdim=True).expand_as(specular)
+        return mask * specular
 
     def compose(self, normal: torch.Tensor, diffuse_net: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """The NGP image of the paper (Sec. 5 "NGP"): R_diff / π ⊕ G_sp^real(N, I_df), linear radiance."""

@@ -122,3 +122,17 @@ def test_with_ema_g_sp_is_the_moving_average_of_the_trained_generator(data, tmp_
     assert all(torch.equal(a, b) for a, b in zip(twin.G_sp_train.parameters(), trained))
     with pytest.raises(ValueError, match="specular.ema"):
         SpecularModel(SpecularConfig(**{**TINY.__dict__, "ema": 1.0}))
+
+
+def test_a_grey_g_sp_adds_uncoloured_light_and_still_learns():
+    torch.manual_seed(0)
+    model = SpecularModel(SpecularConfig(**{**TINY.__dict__, "grey": True}))
+    normal, diffuse = torch.randn(2, 3, 16, 16), torch.rand(2, 3, 16, 16) * 2 - 1
+    mask = (torch.rand(2, 1, 16, 16) > 0.3).float()
+    specular = model.specular(normal, diffuse, mask)
+    assert torch.equal(specular[:, 0], specular[:, 1]) and torch.equal(specular[:, 1], specular[:, 2])
+    coloured = SpecularModel(TINY)
+    coloured.load_state_dict(model.state_dict())
+    assert torch.allclose(specular, coloured.specular(normal, diffuse, mask).mean(1, keepdim=True).expand(-1, 3, -1, -1))
+    specular.sum().backward()
+    assert model.G_sp.output_conv.weight.grad.abs().sum() > 0
