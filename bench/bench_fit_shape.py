@@ -222,13 +222,13 @@ def step_split(ngp, targets: Path, shape_id: str, downsample: int = 1, repeats: 
     network part summed over them; the networks at 1/``downsample`` of the resolution), as a table."""
     import numpy as np
 
-    from ngp_mi.commands.fit_shape import ImageTerm, _source_mesh, fit_losses, load_targets, pool_views
+    from ngp_mi.commands.fit_shape import ImageTerm, fit_losses, load_targets, pool_views, source_mesh
     from ngp_mi.render.depth import depth_of_hits, project_depth
 
     data = load_targets(targets, shape_id)
     cams, fitted = data.cameras[:8], slice(0, 8)
     small = [c.with_resolution(c.width // downsample, c.height // downsample) for c in cams]
-    mesh = _source_mesh(data.record)
+    mesh = source_mesh(data.record)
     term = ImageTerm(ngp, "ngp" if ngp.specular is not None else "no_sp",
                      torch.zeros(1, ngp.maps.config.latent_dim, requires_grad=True))
     for module in (ngp.maps, ngp.specular):

@@ -25,9 +25,8 @@ import trimesh
 from scipy import ndimage
 
 from ngp_mi.atomic import write_json
-from ngp_mi.commands.fit_shape import load_targets
+from ngp_mi.commands.fit_shape import load_targets, source_mesh
 from ngp_mi.data.manifest import load_manifest
-from ngp_mi.geometry.families import generate
 from ngp_mi.geometry.occupancy import voxel_iou
 from ngp_mi.render.depth import project_depth
 
@@ -55,7 +54,7 @@ def main() -> None:
     for shape_id in shape_ids:
         targets = load_targets(args.targets, shape_id)
         cameras, masks = targets.cameras[-args.held_out:], targets.mask[-args.held_out:]
-        truth = generate(targets.record["origin"], int(shape_id.rsplit("/", 1)[1])).mesh()
+        truth = source_mesh(targets.record)
         vertices, faces = np.asarray(truth.vertices, np.float64), np.asarray(truth.faces)
         rows.setdefault("the true mesh through Π_v (ceiling)", []).extend(held_out_ious(vertices, faces, cameras, masks))
         for mask in masks[:, 0].numpy() > 0.5:

@@ -346,8 +346,8 @@ def pool_views(views: torch.Tensor, k: int) -> torch.Tensor:
     return views if k == 1 else torch.nn.functional.avg_pool2d(views, k)
 
 
-def _source_mesh(record: dict[str, Any]) -> TriangleMesh | None:
-    """The target's true shape when the dataset says where it came from."""
+def source_mesh(record: dict[str, Any]) -> TriangleMesh | None:
+    """The target's true shape when the dataset names it (a procedural family or a mesh file), else None."""
     if record.get("source") == "procedural":
         return generate(record["origin"], int(record["shape_id"].rsplit("/", 1)[1])).mesh()
     if record.get("source") == "mesh" and Path(record["origin"]).exists():
@@ -455,7 +455,7 @@ def fit_latent(shape_model: Any, targets: Targets, fitted: slice, config: FitCon
         raise ValueError(f"fit-shape: none of {config.zs_candidates} latents of the shape prior gives a shape")
     best_loss, best_seed = min(scores)
     log(f"fit-shape: start z_s of seed {best_seed} (mask loss {best_loss:.4f}, best of {len(scores)})")
-    truth = _source_mesh(targets.record)
+    truth = source_mesh(targets.record)
     chamfer_zs_start = _chamfer(candidates[best_seed], truth) if truth is not None else None
     z = latent(best_seed, dim).clone().requires_grad_(True)
     moving = [z, *decoder, *([image_term.z_da] if image_term is not None else [])]
@@ -728,7 +728,7 @@ def _finish(config: FitConfig, out: Path, targets: Targets, param: LargeSteps, u
     _write_mesh(out / f"fit.{config.mesh_format}", mesh)
     n, fitted = len(targets.cameras), len(targets.cameras) - config.held_out
     ious = [_iou(maps.mask[i, 0], targets.mask[i, 0]) for i in range(n)]
-    truth = _source_mesh(targets.record)
+    truth = source_mesh(targets.record)
     summary = {"config": dataclasses.asdict(config), "shape_id": targets.record["shape_id"], "views": n,
                "fitted_views": fitted, "steps": len(history) and history[-1]["step"],
                "mask_target": "binary" if targets.coverage is None else "coverage",
