@@ -188,7 +188,9 @@ def sleeping_job(folder: str, worker: int, progress) -> None:
     import os
     import time
 
-    Path(folder, f"{worker}.pid").write_text(str(os.getpid()))
+    # Written under another name and renamed, so the test's glob never sees an empty pid file.
+    Path(folder, f"{worker}.tmp").write_text(str(os.getpid()))
+    Path(folder, f"{worker}.tmp").replace(Path(folder, f"{worker}.pid"))
     time.sleep(120)
 
 
