@@ -62,6 +62,9 @@ PRIOR_SETTINGS = {
     "(c) after (b) and (d), the 8 views' coverage and their mirror images, masks only": (
         {"start": "zs", "fit_decoder": True, "grid_steps": 60, "lr": 1e-2, "depth_weight": 0.0, "image_weight": 0.0,
          "mirror": "x", "soft_masks": True}, False),
+    "(c) after (b) and (d), the 8 views' coverage, pieces under 0.3 % of the surface dropped, masks only": (
+        {"start": "zs", "fit_decoder": True, "grid_steps": 60, "lr": 1e-2, "depth_weight": 0.0, "image_weight": 0.0,
+         "soft_masks": True, "min_component": 0.003}, False),
 }
 
 
@@ -113,9 +116,9 @@ def main() -> None:
                 continue
             if k % shards != shard - 1:
                 continue
-            config = FitConfig(str(targets), shape_id=shape_id, held_out=4,  # binary masks unless a setting says
+            config = FitConfig(str(targets), shape_id=shape_id, held_out=4,  # binary masks, all pieces kept, unless said
                                **{"steps": args.steps, "checkpoint_every": max(1, args.steps), "soft_masks": False,
-                                  **fields,
+                                  "min_component": 0.0, **fields,
                                   **({"image_downsample": args.image_downsample} if networks else {})})
             start = time.perf_counter()
             summary = fit_shape(config, folder, ngp.shape_model if ngp else None, ngp if networks else None,

@@ -383,6 +383,9 @@ def fit_shape_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ray-weight", type=float, default=default(FitConfig, "ray_weight"),
                    help="phase (d): weight of the free-space term along the rays of background pixels "
                         "(default: %(default)s)")
+    p.add_argument("--min-component", type=float, default=default(FitConfig, "min_component"),
+                   help="with --start zs: drop pieces of the extracted surface under this share of its area before "
+                        "the vertices (floaters beside thin parts; 0 keeps all) (default: %(default)s)")
     p.add_argument("--mirror", choices=["x", "y", "z"], default=None,
                    help="the shape is mirror-symmetric about the plane normal to this axis (chairs and cars of "
                         "render-dataset: x): each fitted view's mirror image is fitted too")
@@ -416,7 +419,7 @@ def fit_shape(args: argparse.Namespace) -> int:
                        boundary_spp=args.boundary_spp, zs_steps=args.zs_steps, image_weight=args.image_weight,
                        fit_decoder=args.fit_decoder, decoder_lr=args.decoder_lr, mesh_format=args.format,
                        grid_steps=args.grid_steps, grid_resolution=args.grid_resolution, grid_lr=args.grid_lr,
-                       ray_weight=args.ray_weight, mirror=args.mirror or "",
+                       ray_weight=args.ray_weight, mirror=args.mirror or "", min_component=args.min_component,
                        image_downsample=args.image_downsample)
     from ngp_mi.models.shape import ShapeModel
     from ngp_mi.pipeline import NGP

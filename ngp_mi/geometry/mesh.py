@@ -90,3 +90,39 @@ def normalized_vertices(vertices: np.ndarray, name: str = "mesh", radius: float 
 def normalize_mesh(mesh: TriangleMesh, radius: float = NORMALIZED_RADIUS) -> TriangleMesh:
     """Centre the bounding box at the origin and scale so the farthest vertex lies at ``radius``."""
     return dataclasses.replace(mesh, vertices=normalized_vertices(mesh.vertices, mesh.name, radius))
+
+
+def face_areas(mesh: TriangleMesh) -> np.ndarray:
+    """(F,) the area of each triangle."""
+    a, b, c = (mesh.vertices[mesh.faces[:, i]].astype(np.float64) for i in range(3))
+    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+
+
+def drop_small_components(mesh: TriangleMesh, min_fraction: float) -> tuple[TriangleMesh, int]:
+    """The mesh without its connected components (faces joined through shared vertices) whose area
+    is below ``min_fraction`` of the whole surface's; returns it and how many were dropped. Unused
+    vertices are removed. The largest component is always kept."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    faces = mesh.faces
+    n_vertices = len(mesh.vertices)
+    # each face joins its three vertices: components of this graph are the mesh's pieces
+    rows = np.concatenate([faces[:, 0], faces[:, 1]])
+    cols = np.concatenate([faces[:, 1], faces[:, 2]])
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_vertices, n_vertices))
+    count, label = connected_components(graph, directed=False)
+    face_label = label[faces[:, 0]]
+    area = np.bincount(face_label, weights=face_areas(mesh), minlength=count)
+    keep = area >= min_fraction * area.sum()
+    keep[np.argmax(area)] = True
+    pieces = np.unique(face_label)
+    dropped = int(np.count_nonzero(~keep[pieces]))
+    if not dropped:
+        return mesh, 0
+    kept_faces = keep[face_label]
+    used = np.zeros(n_vertices, bool)
+    used[faces[kept_faces].ravel()] = True
+    index = np.cumsum(used) - 1
+    return TriangleMesh(mesh.vertices[used], index[faces[kept_faces]], mesh.part_ids[kept_faces],
+                        name=mesh.name), dropped

@@ -503,11 +503,20 @@ def test_the_command_line_runs_phases_b_and_d(chair_views, tiny_run, tmp_path):
 
     assert main(["fit-shape", "--targets", str(chair_views), "--out", str(tmp_path / "f"), "--start", "zs",
                  "--shape-run", str(tiny_run[0]), "--zs-steps", "2", "--fit-decoder", "--grid-steps", "2",
-                 "--grid-resolution", "32", "--grid-lr", "0.05", "--ray-weight", "2", "--steps", "1"]) == 0
+                 "--grid-resolution", "32", "--grid-lr", "0.05", "--ray-weight", "2", "--steps", "1",
+                 "--min-component", "0.5"]) == 0
     latent = json.loads((tmp_path / "f" / "state" / "latent.json").read_text())
     assert latent["decoder_fitted"] and len(latent["grid_history"]) == 2
     config = json.loads((tmp_path / "f" / "fit.json").read_text())["config"]
-    assert config["ray_weight"] == 2.0 and config["grid_lr"] == 0.05
+    assert config["ray_weight"] == 2.0 and config["grid_lr"] == 0.05 and config["min_component"] == 0.5
+    # every piece but the largest dropped before the vertices: the start is one connected surface
+    from ngp_mi.geometry.mesh import TriangleMesh, drop_small_components
+
+    start = load_file(tmp_path / "f" / "state" / "start.safetensors")
+    mesh = TriangleMesh(start["vertices"].numpy(), start["faces"].numpy())
+    assert "components_dropped" in latent and drop_small_components(mesh, 0.999)[1] == 0
+    with pytest.raises(ValueError, match="--min-component"):
+        FitConfig(str(chair_views), start="zs", min_component=1.0)
 
 
 def test_mirrored_views_are_what_the_mirrored_cameras_see_of_a_symmetric_shape(chair_images):
