@@ -130,7 +130,7 @@ def realistic_specular(maps: MapsModel, specular: SpecularModel, normal: torch.T
     """G_sp^real(N^g, I_df^g): the learned specular map, from the diffuse image under the training rig
     (its input domain; its highlights do not follow other lights, as the paper notes)."""
     base = 2 * maps.render_diffuse(normal, albedo, mask, [camera]) - 1
-    return specular.specular(normal, base, mask)
+    return specular.specular(normal, base, mask, specular.highlight(maps, normal, mask, [camera]))
 
 
 def shade_maps(normal: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor, camera: Camera,

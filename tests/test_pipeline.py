@@ -77,6 +77,13 @@ def test_a_model_trained_with_car_constants_is_shaded_with_them_everywhere(tmp_p
     torch.testing.assert_close(full["specular"], specular.specular(n, base, m))
     torch.testing.assert_close(full["image"], no_sp["image"] + full["specular"])
     assert not torch.allclose(no_sp["image"], shade(n, a, m, lights, camera, mode="diffuse", k_d=0.8) / math.pi)
+    # a G_sp^real that reads the highlight (issue 15) gets R_BP's specular term with the car's k_s
+    lit = SpecularModel(SpecularConfig(ngf=8, blocks=1, ndf=8, rf_image=(16,), highlight_input=True)).eval()
+    highlight = shade(n, torch.zeros_like(a), m, CameraLights.from_lights(lights, [camera]), [camera], k_d=0.0,
+                      k_s=0.4, alpha=4.0)[:, :1]
+    assert highlight.max() > 0
+    torch.testing.assert_close(ngp_image(maps, lit, *args, variant="ngp")["specular"],
+                               lit.specular(n, base, m, highlight))
 
 
 # ----------------------------------------------------------------------------- NGPScene: handles and stage caching

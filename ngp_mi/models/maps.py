@@ -176,6 +176,14 @@ class MapsModel(BaseModel):
         lights = CameraLights.from_lights(self.lights, cameras, dtype=normal.dtype, device=normal.device)
         return shade(normal, albedo, mask, lights, cameras, k_d=self.config.k_d, mode="diffuse")
 
+    def render_highlight(self, normal: torch.Tensor, mask: torch.Tensor, cameras: list[Camera]) -> torch.Tensor:
+        """The specular term of R_BP alone (k_s, α of the constants, white specular albedo) under the
+        training lights: (N, 1, H, W), where the Blinn-Phong model puts highlights."""
+        lights = CameraLights.from_lights(self.lights, cameras, dtype=normal.dtype, device=normal.device)
+        c = self.config
+        return shade(normal, torch.zeros_like(normal), mask, lights, cameras, k_d=0.0, k_s=c.k_s, alpha=c.alpha,
+                     mode="blinn_phong")[:, :1]
+
     @staticmethod
     def noc(depth: torch.Tensor, mask: torch.Tensor, batch: dict[str, Any]) -> torch.Tensor:
         """NOC(d, K, E) as a network map (2x − 1, background −1)."""

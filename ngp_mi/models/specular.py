@@ -31,6 +31,7 @@ from typing import Any, Callable
 
 import torch
 
+from ngp_mi.camera import Camera
 from ngp_mi.models import losses
 from ngp_mi.models.base import BaseModel, config_from_dict
 from ngp_mi.models.maps import MapsModel, cameras_of, net_to_depth
@@ -61,6 +62,18 @@ class SpecularConfig:
     # surface's; an RGB map can instead repaint the diffuse image's colour errors (seen: a blue tint
     # along thin rails where the reference has no highlight).
     grey: bool = False
+    # Beyond the paper (issue 15): which diffuse images the generated → real cycle composites.
+    # "generated" (the paper): N^g and I_df^g of a depth map with z_da ~ N(0, I). "exemplar": of a
+    # real-maps view, with z_da = μ(E_da(its albedo)) and N^g = G_n(its depth) — the inputs NGP gets
+    # with the exemplar handle. D_real then sees composites whose colours are already the real
+    # distribution's, so what it asks G_sp^real to add is what R_diff lacks (highlights), not the
+    # colour statistics of random z_da, which an additive map can only "fix" by adding light.
+    diffuse_input: str = "generated"
+    # Beyond the paper (issue 15): G_sp^real reads, beside N and I_df, the Blinn-Phong specular term
+    # of N under the training lights (R_BP's k_s, α; NGP-BP's highlight, :meth:`MapsModel.render_highlight`).
+    # Where a highlight can be is then given by the lights and the normals; the network learns how
+    # real highlights look there, instead of finding their places from N alone.
+    highlight_input: bool = False
 
 
 def srgb_encode(linear: torch.Tensor) -> torch.Tensor:
@@ -92,6 +105,7 @@ def blend(diffuse_radiance: torch.Tensor, specular: torch.Tensor, mask: torch.Te
     return diffuse_radiance + mask * specular
 
 
+DIFFUSE_INPUTS = ("generated", "exemplar")
 DARK_START = 0.02  # I_rs everywhere at the start of a dark_start G_sp^real (linear radiance)
 
 
@@ -128,7 +142,9 @@ class SpecularModel(BaseModel):
         self.config = c = config
         if not 0 <= c.ema < 1:
             raise ValueError(f"specular.ema must lie in [0, 1), got {c.ema}")
-        self.G_sp = define_G(6, 3, c.ngf, c.blocks)
+        if c.diffuse_input not in DIFFUSE_INPUTS:
+            raise ValueError(f"specular.diffuse_input must be one of {DIFFUSE_INPUTS}, got {c.diffuse_input!r}")
+        self.G_sp = define_G(7 if c.highlight_input else 6, 3, c.ngf, c.blocks)
         if c.dark_start:
             start_dark(self.G_sp)
         if c.ema:  # G_sp holds the average (what inference and export use), G_sp_train the trained weights
@@ -166,30 +182,64 @@ class SpecularModel(BaseModel):
         fields = {f.name for f in dataclasses.fields(SpecularConfig)}
         return config_from_dict(SpecularConfig, {k: v for k, v in recipe["specular"].items() if k in fields})
 
-    def specular(self, normal: torch.Tensor, diffuse_net: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    def specular(self, normal: torch.Tensor, diffuse_net: torch.Tensor, mask: torch.Tensor,
+                 highlight: torch.Tensor | None = None) -> torch.Tensor:
         """I_rs = G_sp^real(N, I_df): linear radiance in [0, 1], zero off the object. ``diffuse_net``
-        is the map networks' diffuse image, 2 R_diff − 1. In training mode the trained generator
-        (:attr:`trained_G_sp`), else G_sp (with ``ema``, the average)."""
+        is the map networks' diffuse image, 2 R_diff − 1; ``highlight`` (with ``highlight_input``)
+        the Blinn-Phong specular term of N, :meth:`MapsModel.render_highlight`. In training mode the
+        trained generator (:attr:`trained_G_sp`), else G_sp (with ``ema``, the average)."""
+        inputs = [normal, diffuse_net]
+        if self.config.highlight_input:
+            if highlight is None:
+                raise ValueError("specular.highlight_input: G_sp^real needs the Blinn-Phong highlight of its normals")
+            inputs.append(2 * highlight.clamp(0.0, 1.0) - 1)
         generator = self.trained_G_sp if self.training else self.G_sp
-        specular = (generator(torch.cat([normal, diffuse_net], 1)) + 1) / 2
+        specular = (generator(torch.cat(inputs, 1)) + 1) / 2
         if self.config.grey:
             specular = specular.mean(1, keepdim=True).expand_as(specular)
         return mask * specular
 
-    def compose(self, normal: torch.Tensor, diffuse_net: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    def compose(self, normal: torch.Tensor, diffuse_net: torch.Tensor, mask: torch.Tensor,
+                highlight: torch.Tensor | None = None) -> torch.Tensor:
         """The NGP image of the paper (Sec. 5 "NGP"): R_diff / π ⊕ G_sp^real(N, I_df), linear radiance."""
-        return blend(diffuse_radiance(diffuse_net), self.specular(normal, diffuse_net, mask), mask)
+        return blend(diffuse_radiance(diffuse_net), self.specular(normal, diffuse_net, mask, highlight), mask)
 
-    def forward(self, maps: MapsModel, depth_batch: dict[str, Any], real: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Both cycles on a batch of depth maps and an unpaired batch of real images (linear radiance)."""
-        depth, mask = depth_batch["depth"], depth_batch["mask"]
-        cameras = cameras_of(depth_batch)
-        with torch.no_grad():  # the map networks are fixed in this stage
+    def highlight(self, maps: MapsModel, normal: torch.Tensor, mask: torch.Tensor,
+                  cameras: list[Camera]) -> torch.Tensor | None:
+        """G_sp^real's highlight input when it reads one (``highlight_input``), else None."""
+        return maps.render_highlight(normal, mask, cameras) if self.config.highlight_input else None
+
+    @staticmethod
+    @torch.no_grad()
+    def generated_diffuse(maps: MapsModel, depth_batch: dict[str, Any],
+                          maps_batch: dict[str, Any] | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(N^g, I_df^g as 2 R_diff − 1, mask) of the frozen map networks: of ``depth_batch`` with
+        z_da ~ N(0, I), or with ``maps_batch`` (``diffuse_input = "exemplar"``) of its depth with
+        z_da = μ(E_da(its albedo))."""
+        batch = depth_batch if maps_batch is None else maps_batch
+        depth, mask = batch["depth"], batch["mask"]
+        cameras = cameras_of(batch)
+        if maps_batch is None:
             z = torch.randn(depth.shape[0], maps.config.latent_dim, device=depth.device)
-            generated = maps.decorate(depth, mask, depth_batch, z, cameras)
-            normal_g = generated["normal"]
-            diffuse_g_net = 2 * maps.render_diffuse(normal_g, (generated["albedo"] + 1) / 2, mask, cameras) - 1
-        specular_g = self.specular(normal_g, diffuse_g_net, mask)
+        else:
+            z, _ = maps.E_da(2 * maps_batch["albedo"] - 1, mask)
+        generated = maps.decorate(depth, mask, batch, z, cameras)
+        normal = generated["normal"]
+        diffuse_net = 2 * maps.render_diffuse(normal, (generated["albedo"] + 1) / 2, mask, cameras) - 1
+        return normal, diffuse_net, mask
+
+    def forward(self, maps: MapsModel, depth_batch: dict[str, Any], real: torch.Tensor,
+                maps_batch: dict[str, Any] | None = None) -> dict[str, torch.Tensor]:
+        """Both cycles on a batch of depth maps (or, with ``diffuse_input = "exemplar"``, of real
+        maps: ``maps_batch``) and an unpaired batch of real images (linear radiance)."""
+        if self.config.diffuse_input == "exemplar" and maps_batch is None:
+            raise ValueError("specular.diffuse_input = 'exemplar' needs a batch of real maps")
+        exemplar = maps_batch if self.config.diffuse_input == "exemplar" else None
+        normal_g, diffuse_g_net, mask = self.generated_diffuse(maps, depth_batch, exemplar)
+        with torch.no_grad():
+            highlight_g = self.highlight(maps, normal_g, mask, cameras_of(depth_batch if exemplar is None else exemplar))
+        cameras = cameras_of(depth_batch)  # the real cycle's: photographs come without cameras
+        specular_g = self.specular(normal_g, diffuse_g_net, mask, highlight_g)
         composite_g = blend(diffuse_radiance(diffuse_g_net), specular_g, mask)
         composite_g_net = image_to_net(composite_g)
         diffuse_cycled_net = self.F_sp(composite_g_net)
@@ -200,7 +250,9 @@ class SpecularModel(BaseModel):
         _, mask_of_real = net_to_depth(depth_of_real_net)
         # Photographs come without cameras; the paper's views share K, all that normals from depth use.
         normal_of_real = maps.generate_normals(depth_of_real_net, cameras)
-        real_cycled_net = image_to_net(self.compose(normal_of_real, diffuse_of_real_net, mask_of_real))
+        highlight_of_real = self.highlight(maps, normal_of_real, mask_of_real, cameras)
+        real_cycled_net = image_to_net(self.compose(normal_of_real, diffuse_of_real_net, mask_of_real,
+                                                    highlight_of_real))
 
         self._for_d = {"real": (real_net, composite_g_net), "diffuse": (diffuse_g_net, diffuse_of_real_net)}
         self.visuals = {"diffuse_g": image_to_net(diffuse_radiance(diffuse_g_net)), "specular_g": 2 * specular_g - 1,
@@ -214,12 +266,13 @@ class SpecularModel(BaseModel):
             "cyc_real": specular_cycle_loss(real_cycled_net, real_net),
         }
 
-    def optimize(self, maps: MapsModel, depth_batch: dict[str, Any], real: torch.Tensor) -> dict[str, float]:
+    def optimize(self, maps: MapsModel, depth_batch: dict[str, Any], real: torch.Tensor,
+                 maps_batch: dict[str, Any] | None = None) -> dict[str, float]:
         """One step: G_sp and F_sp (discriminators and map networks frozen), then D_real and D_dfr."""
         maps.requires_grad_(False)
         for D in (self.D_real, self.D_dfr):
             D.requires_grad_(False)
-        terms = self(maps, depth_batch, real)
+        terms = self(maps, depth_batch, real, maps_batch)
         loss_G = (terms["gan_real"] + terms["gan_dfr"]
                   + self.config.lambda_cycle * (terms["cyc_generated"] + terms["cyc_real"]))
         self.optimizer_step(self.opt_sp_G, loss_G)

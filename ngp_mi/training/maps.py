@@ -208,7 +208,9 @@ def train_maps(config_path: str | Path, log=print, out: str | Path | None = None
             losses = model.optimize(depth_batch, loop.to_device(maps_batches(step), device))
         else:
             stage, visuals = "specular", specular
-            losses = specular.optimize(model, depth_batch, real_batches(step).to(device))
+            exemplars = (loop.to_device(maps_batches(step), device)
+                         if specular.config.diffuse_input == "exemplar" else None)
+            losses = specular.optimize(model, depth_batch, real_batches(step).to(device), exemplars)
         step += 1
         bar.update(1)
         if log_file is None:

@@ -7,7 +7,7 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
-from ngp_mi.data.datasets import DepthDataset, ImageFolderDataset
+from ngp_mi.data.datasets import DepthDataset, ImageFolderDataset, ReflectanceMapDataset
 from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
 from ngp_mi.models.maps import MapsConfig, MapsModel
 from ngp_mi.models.specular import SpecularConfig, SpecularModel, blend, srgb_decode, srgb_encode
@@ -136,3 +136,69 @@ def test_a_grey_g_sp_adds_uncoloured_light_and_still_learns():
     assert torch.allclose(specular, coloured.specular(normal, diffuse, mask).mean(1, keepdim=True).expand(-1, 3, -1, -1))
     specular.sum().backward()
     assert model.G_sp.output_conv.weight.grad.abs().sum() > 0
+
+
+@pytest.fixture(scope="module")
+def exemplars(tmp_path_factory):
+    root = tmp_path_factory.mktemp("exemplars")
+    render_dataset(DatasetConfig(source="chair", num_shapes=2, views=2, resolution=32, seed=3), root, progress=False)
+    return next(iter(DataLoader(ReflectanceMapDataset(root), batch_size=2)))
+
+
+def test_exemplar_diffuse_input_shades_the_real_maps_appearance_code(data, exemplars):
+    """diffuse_input = "exemplar" (issue 15): the generated → real cycle composites R_diff of
+    G_n(d) and G_da(NOC(d), N^g, μ(E_da(albedo))) of real-maps views — what NGP is given with the
+    exemplar handle — so the image follows the exemplar's albedo; "generated" ignores the maps."""
+    from ngp_mi.models.maps import cameras_of
+
+    torch.manual_seed(0)
+    maps = MapsModel(TINY_MAPS)
+    depth, real = next(iter(zip(*data)))
+    normal, diffuse_net, mask = SpecularModel.generated_diffuse(maps, depth, exemplars)
+    with torch.no_grad():
+        cameras = cameras_of(exemplars)
+        mu, _ = maps.E_da(2 * exemplars["albedo"] - 1, exemplars["mask"])
+        expected = maps.decorate(exemplars["depth"], exemplars["mask"], exemplars, mu, cameras)
+        shaded = maps.render_diffuse(expected["normal"], (expected["albedo"] + 1) / 2, exemplars["mask"], cameras)
+    assert torch.equal(mask, exemplars["mask"]) and torch.allclose(normal, expected["normal"])
+    assert torch.allclose(diffuse_net, 2 * shaded - 1, atol=1e-6)
+    recoloured = {**exemplars, "albedo": 1 - exemplars["albedo"]}
+    assert not torch.allclose(SpecularModel.generated_diffuse(maps, depth, recoloured)[1], diffuse_net)
+
+    model = SpecularModel(SpecularConfig(**{**TINY.__dict__, "diffuse_input": "exemplar"}))
+    steps = model.optimize(maps, depth, real, exemplars)
+    assert all(math.isfinite(v) for v in steps.values())
+    with pytest.raises(ValueError, match="real maps"):
+        model.optimize(maps, depth, real)
+    with pytest.raises(ValueError, match="specular.diffuse_input"):
+        SpecularModel(SpecularConfig(**{**TINY.__dict__, "diffuse_input": "true"}))
+
+
+def test_highlight_input_gives_g_sp_the_blinn_phong_specular_term(data, exemplars):
+    """highlight_input (issue 15): G_sp^real reads a 7th channel, R_BP's specular term of N under the
+    training lights — R_BP with a black albedo, checked against R_BP − R_diff — and trains with it."""
+    from ngp_mi.models.maps import cameras_of
+    from ngp_mi.render.shading import CameraLights, shade
+
+    torch.manual_seed(0)
+    maps = MapsModel(TINY_MAPS)
+    normal, mask = exemplars["normal"], exemplars["mask"]
+    cameras = cameras_of(exemplars)
+    highlight = maps.render_highlight(normal, mask, cameras)
+    lights = CameraLights.from_lights(maps.lights, cameras)
+    c = maps.config
+    full = shade(normal, exemplars["albedo"], mask, lights, cameras, k_d=c.k_d, k_s=c.k_s, alpha=c.alpha)
+    diffuse = shade(normal, exemplars["albedo"], mask, lights, cameras, k_d=c.k_d, mode="diffuse")
+    assert highlight.shape == mask.shape and highlight.max() > 0.05
+    assert torch.allclose(highlight.expand(-1, 3, -1, -1), full - diffuse, atol=1e-5)
+
+    model = SpecularModel(SpecularConfig(**{**TINY.__dict__, "highlight_input": True}))
+    assert next(model.G_sp.parameters()).shape[1] == 7  # N, I_df and the highlight
+    diffuse_net = 2 * maps.render_diffuse(normal, exemplars["albedo"], mask, cameras) - 1
+    with pytest.raises(ValueError, match="highlight"):
+        model.specular(normal, diffuse_net, mask)
+    spec = model.specular(normal, diffuse_net, mask, highlight)
+    assert spec.shape == normal.shape and (spec * (1 - mask)).abs().max() == 0
+    depth, real = next(iter(zip(*data)))
+    steps = model.optimize(maps, depth, real)
+    assert all(math.isfinite(v) for v in steps.values())
