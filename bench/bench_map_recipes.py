@@ -31,42 +31,17 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import shutil
 import time
 from pathlib import Path
 
 import torch
-from safetensors.torch import load_file, save_file
 
 from ngp_mi.atomic import write_json
 from ngp_mi.eval.compare import CompareConfig, run_compare
 from ngp_mi.eval.maps_eval import evaluate_maps
-from ngp_mi.models.specular import SpecularModel
-from ngp_mi.training.maps import train_maps
+from ngp_mi.training.maps import seed_from_maps_run, train_maps
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def seed_from_maps_run(source: Path, run: Path, iterations: int) -> None:
-    """Start ``run`` from ``source``'s map networks at step ``iterations`` (and its log up to there),
-    so that the arm trains only the G_sp^real stage: switches of that stage compared on one set of
-    map networks; the stage's networks start fresh, as the arm's recipe builds them."""
-    checkpoint = source / f"ckpt-{iterations:08d}"
-    if not checkpoint.is_dir():
-        raise SystemExit(f"--maps-from {source}: no checkpoint at step {iterations} ({checkpoint.name})")
-    if (run / checkpoint.name).exists():
-        return  # seeded before (a resumed arm)
-    # without the stage's networks (saved untrained with every checkpoint), which would override the
-    # arm's own initialisation on resume
-    stage_networks = set(SpecularModel.network_names)
-    tensors = {k: v for k, v in load_file(checkpoint / "weights.safetensors").items()
-               if k.split(".", 1)[0] not in stage_networks}
-    (run / checkpoint.name).mkdir(parents=True)
-    shutil.copy2(checkpoint / "state.pt", run / checkpoint.name / "state.pt")
-    save_file(tensors, run / checkpoint.name / "weights.safetensors")
-    log = [line for line in (source / "log.jsonl").read_text().splitlines(keepends=True)
-           if line.strip() and json.loads(line)["step"] <= iterations]
-    (run / "log.jsonl").write_text("".join(log))
 
 
 def run_arm(name: str, overrides: list[str], args: argparse.Namespace, out: Path) -> dict:

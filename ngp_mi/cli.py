@@ -231,6 +231,9 @@ def train_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
                    help="override a recipe value (TOML syntax; bare words are strings), checked like the file; "
                         "repeatable, recorded in OUT/recipe.json. E.g. --set train.iterations=500")
+    p.add_argument("--maps-from", metavar="RUN",
+                   help="maps only: start from RUN's map networks at step [train] iterations and train the "
+                        "G_sp^real stage alone (its switches, or a re-trained stage, on trained map networks)")
 
 
 def train(args: argparse.Namespace) -> int:
@@ -240,7 +243,10 @@ def train(args: argparse.Namespace) -> int:
         from ngp_mi.training.maps import train_maps as run
     else:
         from ngp_mi.training.e2e import train_e2e as run
-    out = run(args.config, out=args.out, overrides=args.set)
+    if args.maps_from and args.stage != "maps":
+        raise SystemExit(f"train {args.stage}: --maps-from is for `train maps`")
+    extra = {"maps_from": args.maps_from} if args.maps_from else {}
+    out = run(args.config, out=args.out, overrides=args.set, **extra)
     print(f"train {args.stage}: outputs in {out}")
     return 0
 

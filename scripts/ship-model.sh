@@ -8,7 +8,8 @@
 # MAP_STEPS / SPECULAR_STEPS cut the `cpu` recipe (6,000 / 1,500) to what the machine's time allows;
 # the card records the steps taken. The shape prior and the map networks share nothing, so they
 # train side by side, one CPU thread each. SHAPE_FROM=MODEL (a shipped name or a model folder)
-# keeps that model's shape prior and re-trains the maps only.
+# keeps that model's shape prior and re-trains the maps only. MAPS_FROM=RUN (a maps run that reached
+# MAP_STEPS) keeps its map networks and re-trains the G_sp^real stage only, into maps_FAMILY_sp.
 set -euo pipefail
 family=${1:?usage: scripts/ship-model.sh chair|car [MAP_STEPS] [SPECULAR_STEPS]}
 map_steps=${2:-6000}
@@ -32,9 +33,11 @@ else
     --set data.source="$family" --set data.cache_dir="outputs/data/shape_$family" &
 fi
 shape=$!
-OMP_NUM_THREADS=1 "$bin" train maps --config train/maps_cpu.toml --out "$runs/maps_$family" \
+maps_run=$runs/maps_$family${MAPS_FROM:+_sp}
+OMP_NUM_THREADS=1 "$bin" train maps --config train/maps_cpu.toml --out "$maps_run" \
   --set data.source="$family" --set data.cache_dir="outputs/data/maps_$family" \
-  --set train.iterations="$map_steps" --set specular.iterations="$specular_steps" "${constants[@]}" &
+  --set train.iterations="$map_steps" --set specular.iterations="$specular_steps" "${constants[@]}" \
+  ${MAPS_FROM:+--maps-from "$MAPS_FROM"} &
 maps=$!
 wait "$shape"
 wait "$maps"
@@ -42,9 +45,9 @@ wait "$maps"
 # held-out shapes (seeds 500–519, 4 views, path-traced references) for the card's figures
 "$bin" render-dataset --source "$family" --out "$held_out" --num-shapes 20 --views 4 --res 64 --seed 500 \
   --real-spp 64 --quiet
-"$bin" evaluate maps --run "$runs/maps_$family" --data "$held_out" --coarse-sigma 2
-"$bin" compare --source "$family" --out "$runs/maps_$family/compare" --num-shapes 3 --views 2 --res 64 \
-  --seed 500 --lights rig --maps-checkpoint "$runs/maps_$family"
-"$bin" export-model --maps-run "$runs/maps_$family" "${shape_args[@]}" \
+"$bin" evaluate maps --run "$maps_run" --data "$held_out" --coarse-sigma 2
+"$bin" compare --source "$family" --out "$maps_run/compare" --num-shapes 3 --views 2 --res 64 \
+  --seed 500 --lights rig --maps-checkpoint "$maps_run"
+"$bin" export-model --maps-run "$maps_run" "${shape_args[@]}" \
   --out "ngp_mi/pretrained/$family" --family "$family" \
-  --notes "${SHAPE_FROM:+SHAPE_FROM=$SHAPE_FROM }scripts/ship-model.sh $family $map_steps $specular_steps on $(nproc --all) CPU cores, $(date -u +%F)"
+  --notes "${SHAPE_FROM:+SHAPE_FROM=$SHAPE_FROM }${MAPS_FROM:+MAPS_FROM=$MAPS_FROM }scripts/ship-model.sh $family $map_steps $specular_steps on $(nproc --all) CPU cores, $(date -u +%F)"

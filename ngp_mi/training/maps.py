@@ -32,13 +32,18 @@ before each optimiser step; rank 0 logs and checkpoints.
 from __future__ import annotations
 
 import dataclasses
+import json
+import shutil
 import time
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 import torch
+from safetensors.torch import load_file, save_file
 from tqdm import tqdm
+
+from ngp_mi.atomic import atomic_path, write_text
 
 from ngp_mi.data.datasets import DepthDataset, ImageFolderDataset, ReflectanceMapDataset
 from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
@@ -162,13 +167,48 @@ def image_grid(visuals: dict[str, torch.Tensor]) -> np.ndarray:
     return contact_sheet(tiles, list(visuals), columns=len(tiles))
 
 
-def train_maps(config_path: str | Path, log=print, out: str | Path | None = None, overrides: Sequence[str] = ()) -> Path:
-    """Train (or resume training) as the recipe says; ``out`` replaces ``[train] out``. Returns the output folder."""
+def seed_from_maps_run(source: str | Path, run: str | Path, iterations: int) -> None:
+    """Start ``run`` from ``source``'s map networks at step ``iterations`` (its checkpoint there, and
+    its log up to there), so that training ``run`` trains only the G_sp^real stage, whose networks
+    start fresh as ``run``'s recipe builds them (switches of that stage compared, or a stage
+    re-trained, on one set of map networks). Nothing happens when ``run`` already has that step."""
+    source, run = Path(source), Path(run)
+    checkpoint = source / f"ckpt-{iterations:08d}"
+    if not checkpoint.is_dir():
+        raise ValueError(f"--maps-from {source}: no checkpoint at step {iterations} ([train] iterations); its map "
+                         f"stage must have reached it")
+    if (run / checkpoint.name).exists():
+        return  # seeded before (a resumed run)
+    # without the stage's networks (saved untrained with every checkpoint), which would override the
+    # recipe's own initialisation on resume
+    stage_networks = {*SpecularModel.network_names, "G_sp_train"}
+    tensors = {k: v for k, v in load_file(checkpoint / "weights.safetensors").items()
+               if k.split(".", 1)[0] not in stage_networks}
+    lines = [line for line in (source / "log.jsonl").read_text().splitlines(keepends=True)
+             if line.strip() and json.loads(line)["step"] <= iterations]
+    write_text(run / "log.jsonl", "".join(lines))
+    with atomic_path(run / checkpoint.name, directory=True) as folder:
+        shutil.copy2(checkpoint / "state.pt", folder / "state.pt")
+        save_file(tensors, folder / "weights.safetensors")
+
+
+def train_maps(config_path: str | Path, log=print, out: str | Path | None = None, overrides: Sequence[str] = (),
+               maps_from: str | Path | None = None) -> Path:
+    """Train (or resume training) as the recipe says; ``out`` replaces ``[train] out``. With
+    ``maps_from`` (a run whose map stage reached ``[train] iterations``) the run starts from its map
+    networks there and trains the G_sp^real stage only (:func:`seed_from_maps_run`). Returns the
+    output folder."""
     overrides = [*overrides, *([out_override(out)] if out else [])]
     recipe = MapsRecipe.read(config_path, overrides)
     train = recipe.train
     device, rank, world = loop.start_processes(train.device)
     out = Path(train.out)
+    if maps_from is not None:
+        if recipe.specular is None:
+            raise ValueError(f"{config_path}: --maps-from trains the [specular] stage only, and the recipe has none")
+        if rank == 0:
+            seed_from_maps_run(maps_from, out, train.iterations)
+        loop.barrier()
     maps_root, depth_root = prepare_data(recipe.data, rank)
     maps_batches = loop.SeededBatches(ReflectanceMapDataset(maps_root), train.batch_size, train.seed, rank, world)
     depth_batches = loop.SeededBatches(DepthDataset(depth_root), train.batch_size, train.seed + 10 ** 6, rank, world)

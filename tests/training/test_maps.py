@@ -83,3 +83,25 @@ def test_the_specular_stage_trains_on_exemplar_maps_with_the_highlight_input(tmp
     assert specular and all(math.isfinite(r["G"]) and math.isfinite(r["D"]) for r in specular)
     tensors = weights(run)
     assert tensors["G_sp.encoder.0.1.weight"].shape[1] == 7 and "G_sp_train.encoder.0.1.weight" in tensors
+
+
+def test_maps_from_trains_the_specular_stage_alone_on_another_runs_map_networks(tmp_path):
+    from ngp_mi.cli import main
+
+    recipe = maps_recipe(tmp_path, "source", iterations=2, device='"cpu"')
+    source = train_maps(recipe, log=lambda *_: None)
+    out = tmp_path / "stage"
+    assert main(["train", "maps", "--config", str(recipe), "--out", str(out), "--maps-from", str(source),
+                 "--set", "specular.highlight_input=true"]) == 0
+    records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert [r["stage"] for r in records] == ["maps"] * 2 + ["specular"] * 3  # the source's log up to step 2
+    seeded = load_file(out / "ckpt-00000002" / "weights.safetensors")
+    at_two = load_file(source / "ckpt-00000002" / "weights.safetensors")
+    assert seeded.keys() == {k for k in at_two if not k.startswith(("G_sp.", "F_sp.", "D_real.", "D_dfr."))}
+    assert all(torch.equal(seeded[k], at_two[k]) for k in seeded)
+    final = weights(out)
+    assert all(torch.equal(final[k], at_two[k]) for k in seeded)  # the map networks stay fixed
+    assert final["G_sp.encoder.0.1.weight"].shape[1] == 7  # the stage is built by this recipe
+    with pytest.raises(ValueError, match="no checkpoint at step 4"):
+        train_maps(maps_recipe(tmp_path, "source", iterations=4, device='"cpu"'), log=lambda *_: None,
+                   out=tmp_path / "other", maps_from=source)
