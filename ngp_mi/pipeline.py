@@ -171,7 +171,7 @@ def ngp_image(maps: MapsModel, specular: SpecularModel | None, depth: torch.Tens
                        added_lights)
     if variant in NEEDS_SPECULAR:
         out["specular"] = realistic_specular(maps, specular, normal, albedo, mask, camera)
-        image = image + out["specular"]
+        image = (image + out["specular"]).clamp_min(0.0)  # ⊕ (models.specular.blend; I_rs is already masked)
     out["image"] = image
     return out
 
@@ -431,7 +431,7 @@ class NGPScene:
             specular = self._stage("specular", k_albedo, lambda: realistic_specular(
                 self.ngp.maps, self.ngp.specular, normal, albedo, mask, self.camera))
         out = {"image": self._stage("blend", k_shade + (specular is not None,),
-                                    lambda: shaded + specular if specular is not None else shaded)}
+                                    lambda: (shaded + specular).clamp_min(0.0) if specular is not None else shaded)}
         if maps:
             out.update(depth=depth, mask=mask, normal=normal, albedo=albedo, shaded=shaded)
             if specular is not None:

@@ -84,6 +84,11 @@ def test_a_model_trained_with_car_constants_is_shaded_with_them_everywhere(tmp_p
     assert highlight.max() > 0
     torch.testing.assert_close(ngp_image(maps, lit, *args, variant="ngp")["specular"],
                                lit.specular(n, base, m, highlight))
+    # a signed G_sp^real (issue 15) may darken; NGP's image stays radiance, never negative
+    signed = SpecularModel(SpecularConfig(ngf=8, blocks=1, ndf=8, rf_image=(16,), blend="signed")).eval()
+    dark = ngp_image(maps, signed, *args, variant="ngp")
+    assert (dark["specular"] < 0).any() and (dark["image"] >= 0).all()
+    torch.testing.assert_close(dark["image"], (no_sp["image"] + dark["specular"]).clamp_min(0))
 
 
 # ----------------------------------------------------------------------------- NGPScene: handles and stage caching

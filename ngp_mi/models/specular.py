@@ -74,6 +74,10 @@ class SpecularConfig:
     # Where a highlight can be is then given by the lights and the normals; the network learns how
     # real highlights look there, instead of finding their places from N alone.
     highlight_input: bool = False
+    # Beyond the paper (issue 15): "add" (the paper's ⊕: I_rs ∈ [0, 1] only adds light) or "signed":
+    # I_rs ∈ (−1, 1), the composite clamped at 0, so the map can also darken — the shadows and
+    # occlusion of real images that R_diff lacks — and starts neutral (tanh(0) = 0) instead of at 0.5.
+    blend: str = "add"
 
 
 def srgb_encode(linear: torch.Tensor) -> torch.Tensor:
@@ -101,11 +105,13 @@ def diffuse_radiance(diffuse_net: torch.Tensor) -> torch.Tensor:
 
 
 def blend(diffuse_radiance: torch.Tensor, specular: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """⊕ of the paper's image formation (Sec. 3.5): I_c = I_df ⊕ I_rs = I_df + M ⊙ I_rs, linear radiance."""
-    return diffuse_radiance + mask * specular
+    """⊕ of the paper's image formation (Sec. 3.5): I_c = I_df ⊕ I_rs = max(I_df + M ⊙ I_rs, 0), linear
+    radiance (the clamp acts only for a signed I_rs, ``blend = "signed"``: radiance is not negative)."""
+    return (diffuse_radiance + mask * specular).clamp_min(0.0)
 
 
 DIFFUSE_INPUTS = ("generated", "exemplar")
+BLENDS = ("add", "signed")
 DARK_START = 0.02  # I_rs everywhere at the start of a dark_start G_sp^real (linear radiance)
 
 
@@ -142,6 +148,8 @@ class SpecularModel(BaseModel):
         self.config = c = config
         if not 0 <= c.ema < 1:
             raise ValueError(f"specular.ema must lie in [0, 1), got {c.ema}")
+        if c.blend not in BLENDS:
+            raise ValueError(f"specular.blend must be one of {BLENDS}, got {c.blend!r}")
         if c.diffuse_input not in DIFFUSE_INPUTS:
             raise ValueError(f"specular.diffuse_input must be one of {DIFFUSE_INPUTS}, got {c.diffuse_input!r}")
         self.G_sp = define_G(7 if c.highlight_input else 6, 3, c.ngf, c.blocks)
@@ -184,7 +192,7 @@ class SpecularModel(BaseModel):
 
     def specular(self, normal: torch.Tensor, diffuse_net: torch.Tensor, mask: torch.Tensor,
                  highlight: torch.Tensor | None = None) -> torch.Tensor:
-        """I_rs = G_sp^real(N, I_df): linear radiance in [0, 1], zero off the object. ``diffuse_net``
+        """I_rs = G_sp^real(N, I_df): linear radiance in [0, 1] (``blend = "signed"``: (−1, 1)), zero off the object. ``diffuse_net``
         is the map networks' diffuse image, 2 R_diff − 1; ``highlight`` (with ``highlight_input``)
         the Blinn-Phong specular term of N, :meth:`MapsModel.render_highlight`. In training mode the
         trained generator (:attr:`trained_G_sp`), else G_sp (with ``ema``, the average)."""
@@ -194,7 +202,8 @@ class SpecularModel(BaseModel):
                 raise ValueError("specular.highlight_input: G_sp^real needs the Blinn-Phong highlight of its normals")
             inputs.append(2 * highlight.clamp(0.0, 1.0) - 1)
         generator = self.trained_G_sp if self.training else self.G_sp
-        specular = (generator(torch.cat(inputs, 1)) + 1) / 2
+        raw = generator(torch.cat(inputs, 1))  # tanh: (−1, 1)
+        specular = raw if self.config.blend == "signed" else (raw + 1) / 2
         if self.config.grey:
             specular = specular.mean(1, keepdim=True).expand_as(specular)
         return mask * specular
@@ -255,7 +264,9 @@ class SpecularModel(BaseModel):
                                                     highlight_of_real))
 
         self._for_d = {"real": (real_net, composite_g_net), "diffuse": (diffuse_g_net, diffuse_of_real_net)}
-        self.visuals = {"diffuse_g": image_to_net(diffuse_radiance(diffuse_g_net)), "specular_g": 2 * specular_g - 1,
+        signed = self.config.blend == "signed"
+        self.visuals = {"diffuse_g": image_to_net(diffuse_radiance(diffuse_g_net)),
+                        "specular_g": specular_g if signed else 2 * specular_g - 1,
                         "composite_g": composite_g_net, "real": real_net,
                         "diffuse_of_real": image_to_net(diffuse_radiance(diffuse_of_real_net)),
                         "real_cycled": real_cycled_net}

@@ -202,3 +202,25 @@ def test_highlight_input_gives_g_sp_the_blinn_phong_specular_term(data, exemplar
     depth, real = next(iter(zip(*data)))
     steps = model.optimize(maps, depth, real)
     assert all(math.isfinite(v) for v in steps.values())
+
+
+def test_a_signed_g_sp_starts_neutral_can_darken_and_never_makes_negative_radiance():
+    """blend = "signed" (issue 15): I_rs ∈ (−1, 1) starts near 0, the composite may be darker than the
+    diffuse image, is clamped at 0 (radiance), and its gradient stays finite at the clamp."""
+    torch.manual_seed(0)
+    model = SpecularModel(SpecularConfig(**{**TINY.__dict__, "blend": "signed"}))
+    normal = torch.nn.functional.normalize(torch.randn(2, 3, 16, 16), dim=1)
+    diffuse_net = (torch.rand(2, 3, 16, 16) * 2 - 1).requires_grad_(True)
+    mask = torch.ones(2, 1, 16, 16)
+    specular = model.specular(normal, diffuse_net, mask)
+    assert specular.abs().mean() < 0.3 and (specular < 0).any() and (specular > 0).any()
+    assert SpecularModel(TINY).specular(normal, diffuse_net, mask).mean() > 0.3  # the paper's starts at ~0.5
+    diffuse = torch.full((1, 3, 2, 2), 0.2)
+    darker = blend(diffuse, torch.tensor([-0.1, -0.5]).view(1, 1, 1, 2).expand(1, 3, 2, 2), torch.ones(1, 1, 2, 2))
+    assert torch.allclose(darker[..., 0], torch.tensor(0.1)) and torch.equal(darker[..., 1], torch.zeros(1, 3, 2))
+    image = model.compose(normal, diffuse_net, mask)
+    assert (image >= 0).all()
+    image.sum().backward()
+    assert torch.isfinite(diffuse_net.grad).all() and model.G_sp.output_conv.weight.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="specular.blend"):
+        SpecularModel(SpecularConfig(**{**TINY.__dict__, "blend": "multiply"}))
