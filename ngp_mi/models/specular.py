@@ -16,7 +16,8 @@ and D_dfr on F_sp's diffuse images vs R_diff's. Cycle terms are L1 with weight �
 default; the paper gives none for this stage).
 
 Conventions: ⊕ is addition in linear radiance, I = I_df / π + M ⊙ I_rs with I_rs ∈ [0, 1] (a
-specular lobe only adds light, only on the object). I_df / π is the radiance of R_diff (see
+specular lobe only adds light, only on the object; the ``signed`` switch lets it darken, the sum
+clamped at 0). I_df / π is the radiance of R_diff (see
 ``render.shading``), so composites and path-traced "real" images share one scale. D_real judges
 sRGB-encoded images (2 sRGB − 1), as photographs are stored; the map networks keep their own
 convention (diffuse network images are 2 R_diff − 1).
@@ -192,10 +193,11 @@ class SpecularModel(BaseModel):
 
     def specular(self, normal: torch.Tensor, diffuse_net: torch.Tensor, mask: torch.Tensor,
                  highlight: torch.Tensor | None = None) -> torch.Tensor:
-        """I_rs = G_sp^real(N, I_df): linear radiance in [0, 1] (``blend = "signed"``: (−1, 1)), zero off the object. ``diffuse_net``
-        is the map networks' diffuse image, 2 R_diff − 1; ``highlight`` (with ``highlight_input``)
-        the Blinn-Phong specular term of N, :meth:`MapsModel.render_highlight`. In training mode the
-        trained generator (:attr:`trained_G_sp`), else G_sp (with ``ema``, the average)."""
+        """I_rs = G_sp^real(N, I_df): linear radiance in [0, 1] (with ``blend = "signed"`` in (−1, 1)),
+        zero off the object. ``diffuse_net`` is the map networks' diffuse image, 2 R_diff − 1;
+        ``highlight`` (with ``highlight_input``) the Blinn-Phong specular term of N,
+        :meth:`MapsModel.render_highlight`. In training mode the trained generator
+        (:attr:`trained_G_sp`), else G_sp (with ``ema``, the average)."""
         inputs = [normal, diffuse_net]
         if self.config.highlight_input:
             if highlight is None:
@@ -246,7 +248,8 @@ class SpecularModel(BaseModel):
         exemplar = maps_batch if self.config.diffuse_input == "exemplar" else None
         normal_g, diffuse_g_net, mask = self.generated_diffuse(maps, depth_batch, exemplar)
         with torch.no_grad():
-            highlight_g = self.highlight(maps, normal_g, mask, cameras_of(depth_batch if exemplar is None else exemplar))
+            highlight_g = self.highlight(maps, normal_g, mask,
+                                         cameras_of(depth_batch if exemplar is None else exemplar))
         cameras = cameras_of(depth_batch)  # the real cycle's: photographs come without cameras
         specular_g = self.specular(normal_g, diffuse_g_net, mask, highlight_g)
         composite_g = blend(diffuse_radiance(diffuse_g_net), specular_g, mask)
