@@ -223,9 +223,10 @@ class SpecularModel(BaseModel):
     @staticmethod
     @torch.no_grad()
     def generated_diffuse(maps: MapsModel, depth_batch: dict[str, Any],
-                          maps_batch: dict[str, Any] | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(N^g, I_df^g as 2 R_diff − 1, mask) of the frozen map networks: of ``depth_batch`` with
-        z_da ~ N(0, I), or with ``maps_batch`` (``diffuse_input = "exemplar"``) of its depth with
+                          maps_batch: dict[str, Any] | None = None,
+                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[Camera]]:
+        """(N^g, I_df^g as 2 R_diff − 1, mask, cameras) of the frozen map networks: of ``depth_batch``
+        with z_da ~ N(0, I), or with ``maps_batch`` (``diffuse_input = "exemplar"``) of its depth with
         z_da = μ(E_da(its albedo))."""
         batch = depth_batch if maps_batch is None else maps_batch
         depth, mask = batch["depth"], batch["mask"]
@@ -237,7 +238,7 @@ class SpecularModel(BaseModel):
         generated = maps.decorate(depth, mask, batch, z, cameras)
         normal = generated["normal"]
         diffuse_net = 2 * maps.render_diffuse(normal, (generated["albedo"] + 1) / 2, mask, cameras) - 1
-        return normal, diffuse_net, mask
+        return normal, diffuse_net, mask, cameras
 
     def forward(self, maps: MapsModel, depth_batch: dict[str, Any], real: torch.Tensor,
                 maps_batch: dict[str, Any] | None = None) -> dict[str, torch.Tensor]:
@@ -246,10 +247,9 @@ class SpecularModel(BaseModel):
         if self.config.diffuse_input == "exemplar" and maps_batch is None:
             raise ValueError("specular.diffuse_input = 'exemplar' needs a batch of real maps")
         exemplar = maps_batch if self.config.diffuse_input == "exemplar" else None
-        normal_g, diffuse_g_net, mask = self.generated_diffuse(maps, depth_batch, exemplar)
+        normal_g, diffuse_g_net, mask, cameras_g = self.generated_diffuse(maps, depth_batch, exemplar)
         with torch.no_grad():
-            highlight_g = self.highlight(maps, normal_g, mask,
-                                         cameras_of(depth_batch if exemplar is None else exemplar))
+            highlight_g = self.highlight(maps, normal_g, mask, cameras_g)
         cameras = cameras_of(depth_batch)  # the real cycle's: photographs come without cameras
         specular_g = self.specular(normal_g, diffuse_g_net, mask, highlight_g)
         composite_g = blend(diffuse_radiance(diffuse_g_net), specular_g, mask)

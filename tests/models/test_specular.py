@@ -154,13 +154,14 @@ def test_exemplar_diffuse_input_shades_the_real_maps_appearance_code(data, exemp
     torch.manual_seed(0)
     maps = MapsModel(TINY_MAPS)
     depth, real = next(iter(zip(*data)))
-    normal, diffuse_net, mask = SpecularModel.generated_diffuse(maps, depth, exemplars)
+    normal, diffuse_net, mask, cameras_g = SpecularModel.generated_diffuse(maps, depth, exemplars)
     with torch.no_grad():
         cameras = cameras_of(exemplars)
         mu, _ = maps.E_da(2 * exemplars["albedo"] - 1, exemplars["mask"])
         expected = maps.decorate(exemplars["depth"], exemplars["mask"], exemplars, mu, cameras)
         shaded = maps.render_diffuse(expected["normal"], (expected["albedo"] + 1) / 2, exemplars["mask"], cameras)
     assert torch.equal(mask, exemplars["mask"]) and torch.allclose(normal, expected["normal"])
+    assert [c.E.tolist() for c in cameras_g] == [c.E.tolist() for c in cameras]  # the exemplars' own cameras
     assert torch.allclose(diffuse_net, 2 * shaded - 1, atol=1e-6)
     recoloured = {**exemplars, "albedo": 1 - exemplars["albedo"]}
     assert not torch.allclose(SpecularModel.generated_diffuse(maps, depth, recoloured)[1], diffuse_net)
