@@ -12,6 +12,10 @@ Variants, one change each against the ``cpu`` recipe's G_da (FiLM) and E_da (mea
 * ``masked`` — E_da pools over the object (``encoder_pool = "masked"``);
 * ``palette`` — G_da as part regions × colours of z (``albedo_head = "palette"``);
 * ``palette+masked`` — both;
+* ``palette+parts`` — the palette with E_da from the colours of the exemplar's soft parts
+  (``encoder_pool = "parts"``);
+* ``palette(mask)+masked``, ``palette(mask)+parts`` — the same with the palette's background taken
+  from the NOC's mask (``palette_background = "mask"``) instead of a softmax slot;
 * ``deterministic`` — z = μ (no sampling; isolates the KL / noise);
 * ``oracle`` — G_da gets the true albedo in place of the normals: the identity is in reach, so its
   error bounds how fast the image head can learn absolute colour at all.
@@ -36,13 +40,20 @@ from ngp_mi.data.datasets import ReflectanceMapDataset
 from ngp_mi.eval.maps_eval import l1_on_object, single_colour_l1
 from ngp_mi.models import losses
 from ngp_mi.models.maps import MapsConfig, MapsModel
-from ngp_mi.nets.networks import define_E, define_G, define_palette_G
+from ngp_mi.nets.networks import PaletteGenerator, define_E, define_G, define_palette_G
+from ngp_mi.viz import chw_to_uint8, labelled_grid, save_png
+
+REGION_COLOURS = torch.tensor([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, 0, 1], [0, 1, 1],
+                               [1, 1, 1], [0.5, 0.5, 0.5]])
 
 VARIANTS = {
     "baseline": {},
     "masked": {"pool": "masked"},
     "palette": {"head": "palette"},
     "palette+masked": {"head": "palette", "pool": "masked"},
+    "palette+parts": {"head": "palette", "pool": "parts"},
+    "palette(mask)+masked": {"head": "palette", "pool": "masked", "background": "mask"},
+    "palette(mask)+parts": {"head": "palette", "pool": "parts", "background": "mask"},
     "deterministic": {"deterministic": True},
     "oracle": {"oracle": True},
 }
@@ -65,6 +76,22 @@ def exemplar_l1(G, E, held_out: list[dict], oracle: bool) -> float:
     return torch.cat(errors).mean().item()
 
 
+@torch.no_grad()
+def save_sheet(G, E, batch: dict, oracle: bool, path: Path, views: int = 8) -> None:
+    """Exemplars, their reconstructions and (for the palette) each pixel's strongest region
+    (black: the background) of the first ``views`` held-out views."""
+    mu, _ = E(2 * batch["albedo"] - 1, batch["mask"])
+    x = condition(batch, oracle)
+    rows = [[chw_to_uint8(a) for a in batch["albedo"][:views]],
+            [chw_to_uint8(a) for a in (G(x, mu)[:views] + 1) / 2]]
+    labels = ["exemplar", "E_da → G_da"]
+    if isinstance(G, PaletteGenerator):
+        regions = REGION_COLOURS[G.weights(x, mu).argmax(1) % len(REGION_COLOURS)].permute(0, 3, 1, 2)
+        rows.append([chw_to_uint8(r, srgb=False) for r in regions[:views]])
+        labels.append("regions")
+    save_png(path, labelled_grid(rows, labels, [f"view {k}" for k in range(len(rows[0]))]))
+
+
 def run_variant(name: str, args: argparse.Namespace, held_out: list[dict]) -> dict:
     spec, config = VARIANTS[name], MapsConfig()
     saved = Path(args.out) / name / "result.json"
@@ -73,10 +100,10 @@ def run_variant(name: str, args: argparse.Namespace, held_out: list[dict]) -> di
         return result
     torch.manual_seed(args.seed)
     if spec.get("head") == "palette":
-        G = define_palette_G(6, args.ngf, args.blocks, config.latent_dim, args.parts)
+        G = define_palette_G(6, args.ngf, args.blocks, config.latent_dim, args.parts, spec.get("background", "slot"))
     else:
         G = define_G(6, 3, args.ngf, args.blocks, latent_dim=config.latent_dim, latent_mode="film")
-    E = define_E(3, config.latent_dim, args.ngf, pool=spec.get("pool", "mean"))
+    E = define_E(3, config.latent_dim, args.ngf, pool=spec.get("pool", "mean"), parts=args.parts)
     optimizer = torch.optim.Adam([*G.parameters(), *E.parameters()], lr=args.lr, betas=(0.5, 0.999))
     loader = DataLoader(ReflectanceMapDataset(args.train), batch_size=8, shuffle=True, drop_last=True,
                         generator=torch.Generator().manual_seed(args.seed))
@@ -99,6 +126,7 @@ def run_variant(name: str, args: argparse.Namespace, held_out: list[dict]) -> di
                       f"ETA {(args.steps - step) / rate / 60:.1f} min", flush=True)
             if step == args.steps:
                 break
+    save_sheet(G, E, held_out[0], spec.get("oracle", False), saved.parent / "sheet.png")
     result = {"variant": name, "budget": budget, "curve": curve, "seconds": time.perf_counter() - began}
     write_json(saved, result)
     return result

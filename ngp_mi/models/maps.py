@@ -29,7 +29,7 @@ from ngp_mi.camera import Camera
 from ngp_mi.lights import overhead_rig
 from ngp_mi.models import losses
 from ngp_mi.models.base import BaseModel, config_from_dict
-from ngp_mi.nets.networks import ENCODER_POOLS, define_D, define_E, define_G, define_palette_G
+from ngp_mi.nets.networks import ENCODER_POOLS, PaletteGenerator, define_D, define_E, define_G, define_palette_G
 from ngp_mi.render.from_depth import noc_from_depth_batch, normals_from_depth, smooth_depth
 from ngp_mi.render.shading import DEFAULT, CameraLights, Constants, shade
 
@@ -77,6 +77,10 @@ class MapsConfig:
     # norms that remove absolute colour). See :class:`ngp_mi.nets.networks.PaletteGenerator`.
     albedo_head: str = "image"
     albedo_parts: int = 4
+    # The palette's background: "slot" (a learned region of colour −1) or "mask" (the NOC's object
+    # mask; the softmax runs over the parts only, which keeps every part alive). See
+    # :class:`ngp_mi.nets.networks.PaletteGenerator`.
+    palette_background: str = "slot"
     # E_da's pooling: "mean" over the image (BicycleGAN's) or "masked" over the object, so a colour is
     # not scaled by the object's size. See :class:`ngp_mi.nets.networks.ResnetEncoder`.
     encoder_pool: str = "mean"
@@ -88,6 +92,9 @@ class MapsConfig:
         if self.albedo_head == "palette" and (self.latent_dim < 1 or self.albedo_parts < 1):
             raise ValueError(f"albedo_head 'palette' needs latent_dim and albedo_parts >= 1, got "
                              f"{self.latent_dim} and {self.albedo_parts}")
+        if self.palette_background not in PaletteGenerator.BACKGROUNDS:
+            raise ValueError(f"palette_background must be one of {PaletteGenerator.BACKGROUNDS}, got "
+                             f"{self.palette_background!r}")
         if self.encoder_pool not in ENCODER_POOLS:
             raise ValueError(f"encoder_pool must be one of {ENCODER_POOLS}, got {self.encoder_pool!r}")
         if self.albedo_cycle_noc not in ("generated", "real"):
@@ -148,11 +155,11 @@ class MapsModel(BaseModel):
             nn.init.zeros_(last.weight)
             nn.init.zeros_(last.bias)
         if c.albedo_head == "palette":
-            self.G_da = define_palette_G(6, c.ngf, c.blocks, c.latent_dim, c.albedo_parts)
+            self.G_da = define_palette_G(6, c.ngf, c.blocks, c.latent_dim, c.albedo_parts, c.palette_background)
         else:
             self.G_da = define_G(6, 3, c.ngf, c.blocks, latent_dim=c.latent_dim, latent_mode=c.latent_mode)
         self.G_depth = define_G(3, 1, c.ngf, c.blocks)
-        self.E_da = define_E(3, c.latent_dim, c.nef, pool=c.encoder_pool)
+        self.E_da = define_E(3, c.latent_dim, c.nef, pool=c.encoder_pool, parts=c.albedo_parts)
         self.D_n = define_D(3, c.rf_maps, c.ndf)
         self.D_da = define_D(3, c.rf_albedo, c.ndf)
         self.D_df = define_D(3, c.rf_maps, c.ndf)

@@ -5,7 +5,8 @@
   to the input of every encoder layer (as VON / BicycleGAN do for G_da) or modulating its
   normalised features (:class:`FiLM`).
 * :class:`PaletteGenerator` — G_da as part regions × part colours of the code (a switch, issue 15).
-* :class:`ResnetEncoder` — E_da: albedo map → (μ, log σ²) of the 8-d appearance code.
+* :class:`ResnetEncoder` — E_da: albedo map → (μ, log σ²) of the 8-d appearance code;
+  :class:`PartEncoder` — E_da from the colours of the exemplar's soft parts (a switch, issue 15).
 * :class:`PatchDiscriminator` — PatchGAN with a receptive field of 16, 34, 70 or 142 pixels;
   :class:`MultiPatchDiscriminator` combines several (the paper's "mid (70) and large (140)").
 * :func:`define_G`, :func:`define_palette_G`, :func:`define_E`, :func:`define_D` — constructors with CycleGAN's init.
@@ -144,32 +145,50 @@ class ResnetGenerator(nn.Module):
 class PaletteGenerator(nn.Module):
     """An albedo map as a soft partition into ``parts`` regions, each of one colour of the code:
 
-        I_da(p) = Σ_k w_k(p) c_k(z),   w(p) = softmax(s · G(x, z)(p)),   c_k(z) = tanh(MLP(z))_k,
+        I_da(p) = Σ_k w_k(p) c_k(z),   w(p) = softmax(s · G(x, z)(p)),   c_k(z) = tanh(MLP(z))_k.
 
-    with a fixed background slot c_0 = −1. G is a FiLM :class:`ResnetGenerator` (which region a
-    pixel belongs to is a matter of shape, which its instance norms keep); the colours come from z
-    through an MLP, which no norm touches: the absolute colour a ResNet generator's norms remove
-    (issue 15) is what the code carries. ``s`` sharpens G's tanh-bounded scores into near-hard parts.
+    G is a FiLM :class:`ResnetGenerator` (which region a pixel belongs to is a matter of shape, which
+    its instance norms keep); the colours come from z through an MLP, which no norm touches: the
+    absolute colour a ResNet generator's norms remove (issue 15) is what the code carries. ``s``
+    sharpens G's tanh-bounded scores into near-hard parts.
+
+    ``background``: "slot" — a fixed background colour c_0 = −1 is one more region of the softmax,
+    so G must learn where the object is; "mask" — the background is the input's (its first three
+    channels are the NOC, −1 off the object: m = object mask), I_da = m Σ_k w_k c_k − (1 − m), and the
+    softmax runs over the parts alone. With the slot, separating object from background saturates
+    the softmax on one part, whose neighbours then get no gradient and never take a pixel: one
+    colour per chair (issue 15, RESULTS).
     """
 
+    BACKGROUNDS = ("slot", "mask")
+
     def __init__(self, in_channels: int, ngf: int, blocks: int, latent_dim: int, parts: int = 4,
-                 sharpness: float = 8.0, hidden: int = 64):
+                 sharpness: float = 8.0, hidden: int = 64, background: str = "slot"):
         super().__init__()
-        self.latent_dim, self.parts, self.sharpness = latent_dim, parts, sharpness
-        self.regions = define_G(in_channels, parts + 1, ngf, blocks, latent_dim, "film")
+        if background not in self.BACKGROUNDS:
+            raise ValueError(f"palette background must be one of {self.BACKGROUNDS}, got {background!r}")
+        self.latent_dim, self.parts, self.sharpness, self.background = latent_dim, parts, sharpness, background
+        self.regions = define_G(in_channels, parts + (background == "slot"), ngf, blocks, latent_dim, "film")
         # PyTorch's default (Kaiming-uniform) init: CycleGAN's N(0, 0.02) would start every colour at
         # grey, nearly independent of z
         self.colours = nn.Sequential(nn.Linear(latent_dim, hidden), nn.LeakyReLU(0.2, True),
                                      nn.Linear(hidden, hidden), nn.LeakyReLU(0.2, True), nn.Linear(hidden, 3 * parts))
 
+    def weights(self, x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """(B, 1 + parts, H, W): the background's weight, then each part's."""
+        scores = self.sharpness * self.regions(x, z)
+        if self.background == "slot":
+            return torch.softmax(scores, dim=1)
+        mask = object_mask(x[:, :3])
+        return torch.cat([1 - mask, torch.softmax(scores, dim=1) * mask], 1)
+
     def forward(self, x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        weights = torch.softmax(self.sharpness * self.regions(x, z), dim=1)
         colours = torch.tanh(self.colours(z)).view(-1, self.parts, 3)
         colours = torch.cat([-torch.ones_like(colours[:, :1]), colours], dim=1)
-        return torch.einsum("bkhw,bkc->bchw", weights, colours)
+        return torch.einsum("bkhw,bkc->bchw", self.weights(x, z), colours)
 
 
-ENCODER_POOLS = ("mean", "masked")
+ENCODER_POOLS = ("mean", "masked", "parts")
 
 
 def object_mask(image: torch.Tensor) -> torch.Tensor:
@@ -209,6 +228,48 @@ class ResnetEncoder(nn.Module):
             weight = nn.functional.adaptive_avg_pool2d(object_mask(x) if mask is None else mask, h.shape[-2:])
             h = (h * weight).sum((2, 3)) / weight.sum((2, 3)).clamp_min(1e-3)
         return self.mu(h), self.logvar(h)
+
+
+class PartEncoder(nn.Module):
+    """E_da as the colours of the exemplar's parts (``encoder_pool = "parts"``, issue 15):
+
+        a(p) = softmax(A(x, m, u, v)(p)),   c_k = Σ_p m(p) a_k(p) x(p) / Σ_p m(p) a_k(p),
+        (μ, log σ²) = linear heads of (c_1, …, c_K),
+
+    A a full-resolution dilated conv net (receptive field 35 px) over the albedo x, its object mask
+    m and the pixel coordinates (u, v), which splits the object into K soft regions. Each region's
+    colour is the exact weighted mean of the input's pixels — no norm or pooling of deep features
+    sits between a part's colour and the code — so the code holds one colour per region, and the
+    palette G_da, trained with it, learns to paint region k where E_da pooled colour k (the parts of
+    a chair, from its geometry). Mean pooling instead returns one colour per chair: the average."""
+
+    def __init__(self, in_channels: int, latent_dim: int = 8, nef: int = 64, parts: int = 4,
+                 dilations: tuple[int, ...] = (1, 2, 4, 8, 1)):
+        super().__init__()
+        layers: list[nn.Module] = [nn.Conv2d(in_channels + 3, nef, 3, 1, 1), nn.LeakyReLU(0.2, True)]
+        for d in dilations:
+            layers += [nn.Conv2d(nef, nef, 3, 1, d, dilation=d), _norm(nef), nn.LeakyReLU(0.2, True)]
+        layers.append(nn.Conv2d(nef, parts, 1))
+        self.regions = nn.Sequential(*layers)
+        self.mu = nn.Linear(in_channels * parts, latent_dim)
+        self.logvar = nn.Linear(in_channels * parts, latent_dim)
+
+    def region_weights(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """(B, K, H, W): each object pixel's soft region, zero off the object."""
+        b, _, h, w = x.shape
+        v, u = torch.meshgrid(torch.linspace(-1, 1, h, device=x.device, dtype=x.dtype),
+                              torch.linspace(-1, 1, w, device=x.device, dtype=x.dtype), indexing="ij")
+        coords = torch.stack([u, v]).expand(b, 2, h, w)
+        return torch.softmax(self.regions(torch.cat([x, mask, coords], 1)), 1) * mask
+
+    def part_colours(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, K, C): the weighted mean of x over each region (0 for an empty one)."""
+        weights = self.region_weights(x, object_mask(x) if mask is None else mask)
+        return torch.einsum("bkhw,bchw->bkc", weights, x) / weights.sum((2, 3))[..., None].clamp_min(1e-3)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        colours = self.part_colours(x, mask).flatten(1)
+        return self.mu(colours), self.logvar(colours)
 
 
 class _BasicDownBlock(nn.Module):
@@ -293,12 +354,19 @@ def define_G(in_channels: int, out_channels: int, ngf: int = 64, blocks: int = 9
     return net
 
 
-def define_palette_G(in_channels: int, ngf: int, blocks: int, latent_dim: int, parts: int = 4) -> PaletteGenerator:
-    return PaletteGenerator(in_channels, ngf, blocks, latent_dim, parts)
+def define_palette_G(in_channels: int, ngf: int, blocks: int, latent_dim: int, parts: int = 4,
+                     background: str = "slot") -> PaletteGenerator:
+    return PaletteGenerator(in_channels, ngf, blocks, latent_dim, parts, background=background)
 
 
-def define_E(in_channels: int, latent_dim: int = 8, nef: int = 64, levels: int = 4, pool: str = "mean") -> ResnetEncoder:
-    return init_weights(ResnetEncoder(in_channels, latent_dim, nef, levels, pool))
+def define_E(in_channels: int, latent_dim: int = 8, nef: int = 64, levels: int = 4, pool: str = "mean",
+             parts: int = 4) -> ResnetEncoder | PartEncoder:
+    if pool != "parts":
+        return init_weights(ResnetEncoder(in_channels, latent_dim, nef, levels, pool))
+    net = init_weights(PartEncoder(in_channels, latent_dim, nef, parts))
+    net.mu.reset_parameters()  # PyTorch's default init: N(0, 0.02) heads would start every code near 0
+    net.logvar.reset_parameters()
+    return net
 
 
 def define_D(in_channels: int, receptive_fields: tuple[int, ...] = (70, 142), ndf: int = 64) -> MultiPatchDiscriminator:

@@ -136,6 +136,19 @@ def test_palette_albedo_and_masked_encoder_train_and_read_the_object_masks(loade
     assert all(math.isfinite(v) for step in history for v in step.values())
     assert len(masks) == 4 and all(m is not None for m in masks)
     assert torch.equal(masks[0], depth["mask"]) and torch.equal(masks[1], maps["mask"])
-    for field, value in (("albedo_head", "texture"), ("encoder_pool", "max")):
+    for field, value in (("albedo_head", "texture"), ("encoder_pool", "max"), ("palette_background", "alpha")):
         with pytest.raises(ValueError, match=f"{field} must be"):
             dataclasses.replace(TINY, **{field: value})
+
+
+def test_the_palette_background_from_the_mask_and_the_part_encoder_train(loaders):
+    """``palette_background = "mask"`` and ``encoder_pool = "parts"`` in the full model: finite steps,
+    and G_da's background is exactly −1 off the depth's object in the top cycle."""
+    torch.manual_seed(7)
+    model = MapsModel(dataclasses.replace(TINY, latent_mode="film", albedo_head="palette", encoder_pool="parts",
+                                          palette_background="mask"))
+    depth, maps = next(zip(*loaders))
+    history = [model.optimize(depth, maps) for _ in range(2)]
+    assert all(math.isfinite(v) for step in history for v in step.values())
+    off = depth["mask"].expand_as(model.visuals["albedo_g"]) == 0
+    assert (model.visuals["albedo_g"][off] == -1).all()

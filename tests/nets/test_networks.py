@@ -119,3 +119,70 @@ def test_the_palette_generator_paints_each_region_a_colour_of_the_code():
     assert (G(x, torch.randn(2, 8)) - y).abs().mean() > 0.01  # the code changes the colours
     y.mean().backward()
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in G.parameters())
+
+
+def _two_part_object(size: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
+    """G_da's input (NOC, N) of a square object whose upper half is one part and lower half another
+    (the NOC's y tells them apart), and its albedo: red above, blue below, −1 off the object."""
+    x = -torch.ones(1, 6, size, size)
+    lo, hi = size // 4, 3 * size // 4
+    ys = torch.linspace(-0.9, 0.9, hi - lo)
+    x[:, 0, lo:hi, lo:hi] = 0.2
+    x[:, 1, lo:hi, lo:hi] = ys[:, None]
+    x[:, 2, lo:hi, lo:hi] = 0.1
+    x[:, 3:, lo:hi, lo:hi] = 0.0
+    target = -torch.ones(1, 3, size, size)
+    target[:, :, lo:lo + (hi - lo) // 2, lo:hi] = torch.tensor([0.8, -0.6, -0.6])[:, None, None]
+    target[:, :, lo + (hi - lo) // 2:hi, lo:hi] = torch.tensor([-0.6, -0.6, 0.8])[:, None, None]
+    return x, target
+
+
+def test_the_palette_background_from_the_mask_keeps_the_parts_apart():
+    """With ``background = "mask"`` the background is exactly −1 wherever the NOC is, the parts'
+    weights sum to one on the object, and a two-part object is learnt as two colours."""
+    torch.manual_seed(0)
+    x, target = _two_part_object()
+    G = define_palette_G(6, ngf=8, blocks=1, latent_dim=4, parts=3, background="mask")
+    z = torch.zeros(1, 4)
+    weights = G.weights(x, z)
+    mask = object_mask(x[:, :3])
+    assert torch.equal(weights[:, 0:1], 1 - mask)
+    assert torch.allclose(weights[:, 1:].sum(1, keepdim=True), mask, atol=1e-6)
+    optimizer = torch.optim.Adam(G.parameters(), lr=3e-3)
+    for _ in range(200):
+        loss = (G(x, z) - target).abs().mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    y = G(x, z)
+    assert torch.equal(y[:, :, mask[0, 0] == 0], target[:, :, mask[0, 0] == 0])  # −1, exactly
+    on_object = (y - target).abs().mean(1)[mask[:, 0] > 0].mean()
+    assert on_object < 0.05, f"a two-colour object came back with an L1 of {on_object:.3f} on the object"
+    with pytest.raises(ValueError, match="palette background must be one of"):
+        define_palette_G(6, ngf=8, blocks=1, latent_dim=4, background="alpha")
+
+
+def test_the_part_encoder_reads_exact_colour_means_of_its_regions():
+    """E_da with ``pool = "parts"``: each region's colour is the weighted mean of the object's pixels
+    (the background never counts), and the code is a linear function of those colours."""
+    torch.manual_seed(0)
+    E = define_E(3, 6, nef=8, pool="parts", parts=2)
+    image = _square((0.4, -0.2, 0.1), 24)
+    image[:, :, 20:32, 20:44] = torch.tensor([-0.5, 0.7, 0.3])[:, None, None]  # a second part: the square's top
+    mask = object_mask(image)
+    weights = E.region_weights(image, mask)
+    assert torch.allclose(weights.sum(1, keepdim=True), mask, atol=1e-6)
+    expected = torch.stack([(image * w).sum((2, 3)) / w.sum((2, 3)) for w in weights.split(1, 1)], 1)
+    colours = E.part_colours(image)
+    assert torch.allclose(colours, expected, atol=1e-5)
+    # every region's colour lies between the object's two colours, whatever the partition
+    assert (colours[..., 1] >= -0.2 - 1e-5).all() and (colours[..., 1] <= 0.7 + 1e-5).all()
+    # uniform regions (a zero last layer) give every region the object's mean colour
+    last = E.regions[-1]
+    torch.nn.init.zeros_(last.weight)
+    torch.nn.init.zeros_(last.bias)
+    mean = (image * mask).sum((2, 3)) / mask.sum((2, 3))
+    assert torch.allclose(E.part_colours(image), mean[:, None].expand(1, 2, 3), atol=1e-5)
+    mu, logvar = E(image)
+    assert mu.shape == logvar.shape == (1, 6)
+    assert torch.allclose(mu, E.mu(E.part_colours(image).flatten(1)), atol=1e-6)
