@@ -29,7 +29,7 @@ from ngp_mi.lights import Light, overhead_rig
 from ngp_mi.models.maps import DEPTH_CENTER, MapsModel, depth_to_net
 from ngp_mi.models.pretrained import load_model
 from ngp_mi.models.shape import ShapeModel
-from ngp_mi.models.specular import SpecularModel
+from ngp_mi.models.specular import SpecularModel, add_specular
 from ngp_mi.nets.networks import check_image_size
 from ngp_mi.render.depth import project_depth
 from ngp_mi.render.from_depth import normals_from_depth
@@ -171,7 +171,7 @@ def ngp_image(maps: MapsModel, specular: SpecularModel | None, depth: torch.Tens
                        added_lights)
     if variant in NEEDS_SPECULAR:
         out["specular"] = realistic_specular(maps, specular, normal, albedo, mask, camera)
-        image = (image + out["specular"]).clamp_min(0.0)  # ⊕ (models.specular.blend; I_rs is already masked)
+        image = add_specular(image, out["specular"])
     out["image"] = image
     return out
 
@@ -431,7 +431,7 @@ class NGPScene:
             specular = self._stage("specular", k_albedo, lambda: realistic_specular(
                 self.ngp.maps, self.ngp.specular, normal, albedo, mask, self.camera))
         out = {"image": self._stage("blend", k_shade + (specular is not None,),
-                                    lambda: (shaded + specular).clamp_min(0.0) if specular is not None else shaded)}
+                                    lambda: add_specular(shaded, specular) if specular is not None else shaded)}
         if maps:
             out.update(depth=depth, mask=mask, normal=normal, albedo=albedo, shaded=shaded)
             if specular is not None:

@@ -108,7 +108,12 @@ def diffuse_radiance(diffuse_net: torch.Tensor) -> torch.Tensor:
 def blend(diffuse_radiance: torch.Tensor, specular: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """⊕ of the paper's image formation (Sec. 3.5): I_c = I_df ⊕ I_rs = max(I_df + M ⊙ I_rs, 0), linear
     radiance (the clamp acts only for a signed I_rs, ``blend = "signed"``: radiance is not negative)."""
-    return (diffuse_radiance + mask * specular).clamp_min(0.0)
+    return add_specular(diffuse_radiance, mask * specular)
+
+
+def add_specular(diffuse_radiance: torch.Tensor, masked_specular: torch.Tensor) -> torch.Tensor:
+    """:func:`blend` of an I_rs already zero off the object (what :meth:`SpecularModel.specular` returns)."""
+    return (diffuse_radiance + masked_specular).clamp_min(0.0)
 
 
 DIFFUSE_INPUTS = ("generated", "exemplar")

@@ -188,7 +188,8 @@ class PaletteGenerator(nn.Module):
         return torch.einsum("bkhw,bkc->bchw", self.weights(x, z), colours)
 
 
-ENCODER_POOLS = ("mean", "masked", "parts")
+RESNET_POOLS = ("mean", "masked")  # :class:`ResnetEncoder`'s; "parts" is :class:`PartEncoder`
+ENCODER_POOLS = (*RESNET_POOLS, "parts")
 
 
 def object_mask(image: torch.Tensor) -> torch.Tensor:
@@ -206,8 +207,8 @@ class ResnetEncoder(nn.Module):
 
     def __init__(self, in_channels: int, latent_dim: int = 8, nef: int = 64, levels: int = 4, pool: str = "mean"):
         super().__init__()
-        if pool not in ENCODER_POOLS:
-            raise ValueError(f"encoder pool must be one of {ENCODER_POOLS}, got {pool!r}")
+        if pool not in RESNET_POOLS:
+            raise ValueError(f"encoder pool must be one of {RESNET_POOLS}, got {pool!r}")
         self.pool = pool
         layers: list[nn.Module] = [nn.Conv2d(in_channels, nef, 4, 2, 1)]
         channels = nef
