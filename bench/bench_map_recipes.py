@@ -37,11 +37,26 @@ from pathlib import Path
 import torch
 
 from ngp_mi.atomic import write_json
-from ngp_mi.eval.compare import CompareConfig, run_compare
+from ngp_mi.eval.compare import NGP_METHOD, NO_SP_METHOD, CompareConfig, run_compare
 from ngp_mi.eval.maps_eval import evaluate_maps
 from ngp_mi.training.maps import seed_from_maps_run, train_maps
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def score_images(folder: Path) -> dict:
+    """``compare`` of the arm's last checkpoint: NGP's image without and with G_sp^real, and where
+    G_sp^real puts its light (``specular_placement``: precision, recall, added)."""
+    run = folder / "run"
+    summary = run_compare(CompareConfig(num_shapes=3, views=2, resolution=64, light_setups=("rig",),
+                                        seed=500, maps_checkpoint=str(run)), folder / "compare", log=lambda *_: None)
+    by_method = {row["method"]: row for row in summary}
+    images = {label: by_method[method] for label, method in (("without G_sp", NO_SP_METHOD), ("NGP", NGP_METHOD))
+              if method in by_method}
+    out = {"images": {k: {"psnr": v["psnr_srgb_masked"], "flip": v["flip_masked"]} for k, v in images.items()}}
+    if NGP_METHOD in by_method:
+        out["specular_placement"] = {k: by_method[NGP_METHOD][f"specular_{k}"] for k in ("precision", "recall", "added")}
+    return out
 
 
 def run_arm(name: str, overrides: list[str], args: argparse.Namespace, out: Path) -> dict:
@@ -52,6 +67,9 @@ def run_arm(name: str, overrides: list[str], args: argparse.Namespace, out: Path
     if saved.exists():
         result = json.loads(saved.read_text())
         if result.get("overrides") == overrides and result.get("budget", budget) == budget:
+            if "specular_placement" not in result and "NGP" in result["images"]:  # an arm scored before it existed
+                result.update(score_images(folder))
+                write_json(saved, result)
             return result
     if args.maps_from:
         seed_from_maps_run(Path(args.maps_from), folder / "run", args.iterations)
@@ -61,14 +79,8 @@ def run_arm(name: str, overrides: list[str], args: argparse.Namespace, out: Path
                                 f"train.seed={args.seed}", "train.checkpoint_every=250", *overrides])
     minutes = (time.perf_counter() - began) / 60
     maps = evaluate_maps(run, args.held_out, folder / "eval", coarse_sigma=2.0)
-    summary = run_compare(CompareConfig(num_shapes=3, views=2, resolution=64, light_setups=("rig",),
-                                        seed=500, maps_checkpoint=str(run)), folder / "compare", log=lambda *_: None)
-    by_method = {row["method"]: row for row in summary}
-    images = {label: by_method[method] for label, method in (
-        ("without G_sp", "NGP w/o G_sp^real: R_diff on generated maps"), ("NGP", "NGP: R_diff ⊕ G_sp^real"))
-        if method in by_method}
     result = {"arm": name, "overrides": overrides, "budget": budget, "train_minutes": minutes, "maps": maps,
-              "images": {k: {"psnr": v["psnr_srgb_masked"], "flip": v["flip_masked"]} for k, v in images.items()}}
+              **score_images(folder)}
     write_json(saved, result)
     return result
 
@@ -97,14 +109,17 @@ def main() -> None:
           f"({torch.get_num_threads()} threads); train/maps_cpu.toml cut to {args.iterations} + {args.specular} "
           f"steps, seed {args.seed}; held-out {args.held_out}\n")
     print("| arm | diversity ratio | spread over z_da | exemplar L1 (single colour) | G_n / own normals ° (σ 2 px) "
-          "| w/o G_sp PSNR / FLIP | NGP PSNR / FLIP | train min |\n|---|---|---|---|---|---|---|---|")
+          "| w/o G_sp PSNR / FLIP | NGP PSNR / FLIP | G_sp^real's light: precision / recall | train min |\n"
+          "|---|---|---|---|---|---|---|---|---|")
     for r in results:
         m, n = r["maps"], r["maps"]["normal_error_deg"]
         image = {k: f"{v['psnr']:.2f} / {v['flip']:.3f}" for k, v in r["images"].items()}
+        place = r.get("specular_placement")
+        placement = f"{place['precision']:.2f} / {place['recall']:.2f}" if place else "–"
         print(f"| {r['arm']} | {m['appearance_diversity_ratio']:.3f} | {m['albedo_diversity_l1']:.4f} | "
               f"{m['albedo_reconstruction_l1']:.3f} ({m['albedo_single_colour_l1']:.3f}) | "
               f"{n['G_n']['mean']:.1f} / {n['from_coarse_depth']['mean']:.1f} | {image.get('without G_sp', '–')} | "
-              f"{image.get('NGP', '–')} | {r['train_minutes']:.1f} |")
+              f"{image.get('NGP', '–')} | {placement} | {r['train_minutes']:.1f} |")
 
 
 if __name__ == "__main__":

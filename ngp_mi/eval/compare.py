@@ -43,7 +43,7 @@ from ngp_mi.camera import Camera
 from ngp_mi.data.sources import resolve_source
 from ngp_mi.data.views import derived_seed, random_lights, view_cameras
 from ngp_mi.eval.fid import InceptionFeatures
-from ngp_mi.eval.metrics import fid_from_features, flip, kernel_inception_distance, psnr, ssim
+from ngp_mi.eval.metrics import added_light_placement, fid_from_features, flip, kernel_inception_distance, psnr, ssim
 from ngp_mi.eval.report import COMPARE_METRICS, plot_speed_accuracy, write_compare_report
 from ngp_mi.lights import Light, overhead_rig
 from ngp_mi.models.maps import MapsModel
@@ -73,6 +73,9 @@ class CompareConfig:
 
 
 METRICS = COMPARE_METRICS
+NGP_METHOD, NO_SP_METHOD = "NGP: R_diff ⊕ G_sp^real", "NGP w/o G_sp^real: R_diff on generated maps"
+# G_sp^real's light against the reference's excess over the diffuse image (added_light_placement)
+SPECULAR_METRICS = ("specular_precision", "specular_recall", "specular_added")
 LIGHT_SETUPS = ("rig", "random", "rig+random")
 
 
@@ -257,10 +260,10 @@ def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: G
         methods += [
             (f"NGP-BP: R_BP on generated maps (k_d {c.k_d}, k_s {c.k_s}, α {c.alpha:g})", "neural",
              neural("ngp_bp")),
-            ("NGP w/o G_sp^real: R_diff on generated maps", "neural", neural("no_sp")),
+            (NO_SP_METHOD, "neural", neural("no_sp")),
         ]
     if model is not None and specular is not None:
-        methods += [("NGP: R_diff ⊕ G_sp^real", "neural", neural("ngp")),
+        methods += [(NGP_METHOD, "neural", neural("ngp")),
                     ("NGP w/o G_n: normals from the depth map", "neural", neural("no_gn")),
                     ("NGP w/o G_da: white albedo", "neural", neural("no_gda"))]
         if extra and len(extra) < len(lights):
@@ -280,7 +283,18 @@ def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: G
         errors.append(flip(linear_to_srgb(reference), linear_to_srgb(image))[1])
         labels.append(name.split(" (")[0][:22])
     error_tiles = [_magma(e) for e in errors]
-    sheet = contact_sheet(tiles + error_tiles, labels + ["FLIP error"] * len(errors), columns=len(tiles))
+    error_labels = ["FLIP error"] * len(errors)
+    if NGP_METHOD in images and NO_SP_METHOD in images:
+        diffuse, composite = images[NO_SP_METHOD][1], images[NGP_METHOD][1]
+        placement = added_light_placement(reference, diffuse, composite, mask)
+        next(r for r in rows if r["method"] == NGP_METHOD).update(
+            {f"specular_{k}": v for k, v in placement.items()})
+        # the light G_sp^real adds above the light the reference has beyond the diffuse image, both ×4
+        tiles.append(to_uint8(np.clip(4 * (composite - diffuse), 0, 1)))
+        error_tiles.append(to_uint8(np.clip(4 * (reference - diffuse), 0, 1)))
+        labels.append("G_sp^real adds, x4")
+        error_labels.append("ref - w/o G_sp, x4")
+    sheet = contact_sheet(tiles + error_tiles, labels + error_labels, columns=len(tiles))
     save_png(sheet_path, sheet)
     return rows, sheet_path.name, images
 
@@ -307,7 +321,7 @@ def summarise(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
         if "spp" in group[0]:
             entry["spp"] = group[0]["spp"]
         for key in group[0]:
-            if key.split("_masked")[0] in METRICS:
+            if key.split("_masked")[0] in METRICS or key in SPECULAR_METRICS:
                 values = [r[key] for r in group if math.isfinite(r[key])]
                 entry[key] = float(np.mean(values)) if values else float("inf")
         summary.append(entry)

@@ -47,6 +47,28 @@ def flip(reference_srgb: np.ndarray, test_srgb: np.ndarray, mask: np.ndarray | N
     return float(np.mean(_select(error_map, mask))), error_map
 
 
+def added_light_placement(reference: np.ndarray, base: np.ndarray, composite: np.ndarray,
+                          mask: np.ndarray | None = None) -> dict[str, float]:
+    """Where a layer added to an image puts its light, against what the reference has there (linear
+    radiance): with A = max(composite − base, 0) the light added and E = max(reference − base, 0) the
+    light the reference has beyond the base image, summed over the object and channels,
+
+    * precision = Σ min(A, E) / Σ A — the share of the added light the reference also has (1: none
+      lands where the reference is no brighter than the base);
+    * recall = Σ min(A, E) / Σ E — the share of the reference's excess the layer supplies;
+    * added = mean A per pixel and channel.
+
+    An empty sum gives 1 for precision or recall (nothing added, nothing missed). For NGP the base
+    is R_diff / π and the layer G_sp^real ("highlights where the reference has them")."""
+    added = np.maximum(_select(np.asarray(composite, np.float64) - base, mask), 0.0)
+    excess = np.maximum(_select(np.asarray(reference, np.float64) - base, mask), 0.0)
+    matched = float(np.minimum(added, excess).sum())
+    total_added, total_excess = float(added.sum()), float(excess.sum())
+    return {"precision": matched / total_added if total_added > 0 else 1.0,
+            "recall": matched / total_excess if total_excess > 0 else 1.0,
+            "added": float(added.mean())}
+
+
 def frechet_distance(mu1: np.ndarray, sigma1: np.ndarray, mu2: np.ndarray, sigma2: np.ndarray) -> float:
     """Fréchet distance of two Gaussians, ``|μ1 − μ2|² + tr(Σ1 + Σ2 − 2 (Σ1 Σ2)^½)`` (FID's formula).
 

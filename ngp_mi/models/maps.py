@@ -180,16 +180,19 @@ class MapsModel(BaseModel):
     def render_diffuse(self, normal: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor,
                        cameras: list[Camera]) -> torch.Tensor:
         """R_diff under the training lights, each view in its own camera space."""
-        lights = CameraLights.from_lights(self.lights, cameras, dtype=normal.dtype, device=normal.device)
-        return shade(normal, albedo, mask, lights, cameras, k_d=self.config.k_d, mode="diffuse")
+        return shade(normal, albedo, mask, self.training_lights(cameras, normal), cameras, k_d=self.config.k_d,
+                     mode="diffuse")
 
     def render_highlight(self, normal: torch.Tensor, mask: torch.Tensor, cameras: list[Camera]) -> torch.Tensor:
         """The specular term of R_BP alone (k_s, α of the constants, white specular albedo) under the
         training lights: (N, 1, H, W), where the Blinn-Phong model puts highlights."""
-        lights = CameraLights.from_lights(self.lights, cameras, dtype=normal.dtype, device=normal.device)
         c = self.config
-        return shade(normal, torch.zeros_like(normal), mask, lights, cameras, k_d=0.0, k_s=c.k_s, alpha=c.alpha,
-                     mode="blinn_phong")[:, :1]
+        return shade(normal, torch.zeros_like(normal), mask, self.training_lights(cameras, normal), cameras, k_d=0.0,
+                     k_s=c.k_s, alpha=c.alpha, mode="blinn_phong")[:, :1]
+
+    def training_lights(self, cameras: list[Camera], like: torch.Tensor) -> CameraLights:
+        """The training lights in each view's camera space, in ``like``'s dtype and device."""
+        return CameraLights.from_lights(self.lights, cameras, dtype=like.dtype, device=like.device)
 
     @staticmethod
     def noc(depth: torch.Tensor, mask: torch.Tensor, batch: dict[str, Any]) -> torch.Tensor:

@@ -79,6 +79,12 @@ class SpecularConfig:
     # I_rs ∈ (−1, 1), the composite clamped at 0, so the map can also darken — the shadows and
     # occlusion of real images that R_diff lacks — and starts neutral (tanh(0) = 0) instead of at 0.5.
     blend: str = "add"
+    # Beyond the paper (issue 15): weight of an L1 prior on the generated cycle's I_rs over the
+    # object (:func:`specular_sparsity_loss`). The adversarial stage otherwise adds light wherever a
+    # composite differs from real images, which for rough materials (the chairs' reference has
+    # almost no highlight) is mostly the diffuse image's own errors; the prior keeps only the light
+    # that pays for itself in L_real^GAN. 0: off.
+    lambda_sparse: float = 0.0
 
 
 def srgb_encode(linear: torch.Tensor) -> torch.Tensor:
@@ -139,6 +145,13 @@ def specular_cycle_loss(cycled: torch.Tensor, original: torch.Tensor) -> torch.T
     return (cycled - original).abs().mean()
 
 
+def specular_sparsity_loss(specular: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """L_sp^sparse (ours, ``lambda_sparse``): the mean |I_rs| over the object's pixels and channels,
+    a specular map is mostly black (the prior intrinsic-image decompositions put on their
+    specular layers). ``specular`` is already zero off the object."""
+    return specular.abs().sum() / (specular.shape[1] * mask.sum()).clamp_min(1.0)
+
+
 class SpecularModel(BaseModel):
     """G_sp^real with its inverse F_sp and discriminators; :meth:`optimize` trains them on top of a
     frozen :class:`MapsModel` (the paper's second stage; App. "Training details")."""
@@ -146,7 +159,7 @@ class SpecularModel(BaseModel):
     network_names = ("G_sp", "F_sp", "D_real", "D_dfr")
     optimizer_names = ("opt_sp_G", "opt_sp_D")  # beside the map networks' opt_G / opt_D in one checkpoint
     config_class, config_key = SpecularConfig, "specular"
-    loss_names = ("gan_real", "gan_dfr", "cyc_generated", "cyc_real", "G", "D")
+    loss_names = ("gan_real", "gan_dfr", "cyc_generated", "cyc_real", "sparse", "G", "D")
     visual_names = ("diffuse_g", "specular_g", "composite_g", "real", "diffuse_of_real", "real_cycled")
 
     def __init__(self, config: SpecularConfig = SpecularConfig()):
@@ -156,6 +169,8 @@ class SpecularModel(BaseModel):
             raise ValueError(f"specular.ema must lie in [0, 1), got {c.ema}")
         if c.blend not in BLENDS:
             raise ValueError(f"specular.blend must be one of {BLENDS}, got {c.blend!r}")
+        if c.lambda_sparse < 0:
+            raise ValueError(f"specular.lambda_sparse must be ≥ 0, got {c.lambda_sparse}")
         if c.diffuse_input not in DIFFUSE_INPUTS:
             raise ValueError(f"specular.diffuse_input must be one of {DIFFUSE_INPUTS}, got {c.diffuse_input!r}")
         self.G_sp = define_G(7 if c.highlight_input else 6, 3, c.ngf, c.blocks)
@@ -283,6 +298,7 @@ class SpecularModel(BaseModel):
             "gan_dfr": losses.adversarial_loss(self.D_dfr, diffuse_of_real_net),
             "cyc_generated": specular_cycle_loss(diffuse_cycled_net, diffuse_g_net),
             "cyc_real": specular_cycle_loss(real_cycled_net, real_net),
+            "sparse": specular_sparsity_loss(specular_g, mask),
         }
 
     def optimize(self, maps: MapsModel, depth_batch: dict[str, Any], real: torch.Tensor,
@@ -293,7 +309,8 @@ class SpecularModel(BaseModel):
             D.requires_grad_(False)
         terms = self(maps, depth_batch, real, maps_batch)
         loss_G = (terms["gan_real"] + terms["gan_dfr"]
-                  + self.config.lambda_cycle * (terms["cyc_generated"] + terms["cyc_real"]))
+                  + self.config.lambda_cycle * (terms["cyc_generated"] + terms["cyc_real"])
+                  + self.config.lambda_sparse * terms["sparse"])
         self.optimizer_step(self.opt_sp_G, loss_G)
         self.update_average()
         for D in (self.D_real, self.D_dfr):

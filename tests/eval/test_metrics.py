@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from ngp_mi.eval.metrics import fid_from_features, flip, frechet_distance, kernel_inception_distance, psnr, ssim
+from ngp_mi.eval.metrics import added_light_placement, fid_from_features, flip, frechet_distance, kernel_inception_distance, psnr, ssim
 
 
 def test_psnr_known_values_and_mask():
@@ -55,3 +55,23 @@ def test_fid_and_kid_from_features():
     shifted = rng.normal(size=(400, 8)) + 1.0
     assert fid_from_features(x, same) < 0.3 < fid_from_features(x, shifted)
     assert abs(kernel_inception_distance(x, same)) < 0.05 < kernel_inception_distance(x, shifted)
+
+
+def test_added_light_placement_counts_the_light_the_reference_also_has():
+    """Base 0.2 everywhere; the reference is brighter by 0.3 on the left half; the layer adds 0.1 on
+    the left half and 0.2 on the right: of 0.3 added per row pair, 0.1 is matched."""
+    base = np.full((2, 4, 3), 0.2)
+    reference, composite = base.copy(), base.copy()
+    reference[:, :2] += 0.3
+    composite[:, :2] += 0.1
+    composite[:, 2:] += 0.2
+    place = added_light_placement(reference, base, composite)
+    assert place["precision"] == pytest.approx(0.1 / 0.3)
+    assert place["recall"] == pytest.approx(0.1 / 0.3)
+    assert place["added"] == pytest.approx(0.15)
+    mask = np.zeros((2, 4))
+    mask[:, :2] = 1  # the left half only: all the added light is the reference's, a third of its excess
+    assert added_light_placement(reference, base, composite, mask) == pytest.approx(
+        {"precision": 1.0, "recall": 1 / 3, "added": 0.1})
+    nothing = added_light_placement(base, base, base)  # nothing added, nothing missed
+    assert nothing == {"precision": 1.0, "recall": 1.0, "added": 0.0}

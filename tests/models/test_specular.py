@@ -225,3 +225,39 @@ def test_a_signed_g_sp_starts_neutral_can_darken_and_never_makes_negative_radian
     assert torch.isfinite(diffuse_net.grad).all() and model.G_sp.output_conv.weight.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="specular.blend"):
         SpecularModel(SpecularConfig(**{**TINY.__dict__, "blend": "multiply"}))
+
+
+def test_the_sparsity_prior_is_the_object_mean_of_i_rs_and_darkens_g_sp(data):
+    """lambda_sparse (issue 15): L_sp^sparse is |I_rs| averaged over the object's pixels and channels
+    (zero off it), and with a large weight a few steps leave less light on the object than the same
+    steps without it."""
+    from ngp_mi.models.specular import specular_sparsity_loss
+
+    mask = torch.zeros(1, 1, 4, 4)
+    mask[..., :2] = 1
+    specular = torch.zeros(1, 3, 4, 4)
+    specular[:, 0, :, :2] = 0.6
+    assert specular_sparsity_loss(specular, mask).item() == pytest.approx(0.6 / 3)
+    assert specular_sparsity_loss(torch.zeros_like(specular), torch.zeros_like(mask)).item() == 0.0  # no object, no NaN
+
+    probe = next(iter(data[0]))
+    maps_seed_state = MapsModel(TINY_MAPS).state_dict()
+
+    def light_after_steps(weight: float) -> float:
+        torch.manual_seed(0)
+        maps = MapsModel(TINY_MAPS)
+        maps.load_state_dict(maps_seed_state)
+        model = SpecularModel(SpecularConfig(**{**TINY.__dict__, "lambda_sparse": weight, "lr": 1e-3}))
+        for _ in range(1):
+            for depth, real in zip(*data):
+                torch.manual_seed(1)
+                steps = model.optimize(maps, depth, real)
+        assert math.isfinite(steps["sparse"]) and steps["sparse"] >= 0
+        torch.manual_seed(2)
+        normal, diffuse_net, mask, _ = model.generated_diffuse(maps, probe)
+        with torch.no_grad():
+            return specular_sparsity_loss(model.specular(normal, diffuse_net, mask), mask).item()
+
+    assert light_after_steps(100.0) < 0.9 * light_after_steps(0.0)  # Adam: 2 steps of lr 1e-3 move it so far
+    with pytest.raises(ValueError, match="lambda_sparse"):
+        SpecularModel(SpecularConfig(**{**TINY.__dict__, "lambda_sparse": -1.0}))
