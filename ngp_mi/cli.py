@@ -14,6 +14,7 @@ import inspect
 import json
 import logging
 import sys
+from pathlib import Path
 from typing import Any, Callable, Sequence
 
 
@@ -154,8 +155,9 @@ def render_dataset_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--half", action="store_true", help="store all channels but depth as 16-bit floats (half the size)")
     p.add_argument("--workers", type=at_least(0), default=0, help="processes splitting this shard's shapes "
                    "(default: one per core, at most 8; 1 on a GPU)")
-    p.add_argument("--coarse-shapes", metavar="RUN", help="a `train shape` run: render each shape as its "
-                   "autoencoder reconstructs it (NGP's coarse shapes; ids and views pair with the detailed ones)")
+    p.add_argument("--coarse-shapes", metavar="RUN", help="a `train shape` run, or a model folder or shipped name "
+                   "(chair, car): render each shape as its autoencoder reconstructs it (NGP's coarse shapes; ids and "
+                   "views pair with the detailed ones)")
     p.add_argument("--coarse-resolution", type=at_least(8), default=default(DatasetConfig, "coarse_resolution"),
                    help="marching-cubes grid of --coarse-shapes (default: %(default)s)")
     p.add_argument("--strict", action="store_true", help="exit non-zero if any shape was skipped")
@@ -173,9 +175,14 @@ def render_dataset(args: argparse.Namespace) -> int:
                            coarse_resolution=args.coarse_resolution)
     reconstruct = None
     if args.coarse_shapes:
-        from ngp_mi.models.shape import CoarseShapes  # imports torch (~3 s): only coarse shapes need it
+        from ngp_mi.models import pretrained  # imports torch (~3 s): only coarse shapes need it
+        from ngp_mi.models.shape import CoarseShapes
 
-        reconstruct = CoarseShapes(args.coarse_shapes, args.coarse_resolution)
+        load = None  # a `train shape` run; else a model folder or shipped name, checked here, not per shape
+        if not (Path(args.coarse_shapes) / "recipe.json").exists():
+            pretrained.resolve(args.coarse_shapes)
+            load = pretrained.load_shape
+        reconstruct = CoarseShapes(args.coarse_shapes, args.coarse_resolution, load=load)
     summary = render_dataset(config, args.out, shard=parse_shard(args.shard), strict=args.strict,
                              progress=not args.quiet, workers=args.workers or default_workers(),
                              reconstruct=reconstruct)

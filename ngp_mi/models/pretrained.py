@@ -150,10 +150,22 @@ def load_model(name_or_path: str | Path) -> tuple[MapsModel, SpecularModel | Non
     if "specular" in configs:
         specular = SpecularModel(config_from_dict(SpecularConfig, configs["specular"]))
         _load_into(specular, weights, "specular", INFERENCE_NETWORKS["specular"], folder / "maps.safetensors")
-    shape = None
-    if "shape" in configs:
-        shape = ShapeModel(config_from_dict(ShapeConfig, configs["shape"]))
-        _load_into(shape, load_file(folder / "shape.safetensors"), "shape", INFERENCE_NETWORKS["shape"],
-                   folder / "shape.safetensors")
-        shape.eval()
+    shape = _shape_of(folder, configs) if "shape" in configs else None
     return maps.eval(), specular.eval() if specular is not None else None, shape, card
+
+
+def _shape_of(folder: Path, configs: dict[str, Any]) -> ShapeModel:
+    shape = ShapeModel(config_from_dict(ShapeConfig, configs["shape"]))
+    _load_into(shape, load_file(folder / "shape.safetensors"), "shape", INFERENCE_NETWORKS["shape"],
+               folder / "shape.safetensors")
+    return shape.eval()
+
+
+def load_shape(name_or_path: str | Path) -> ShapeModel:
+    """G_shape of a shipped model folder (eval mode, CPU): what ``render-dataset --coarse-shapes chair``
+    reconstructs with (:class:`ngp_mi.models.shape.CoarseShapes`); the error names a folder without one."""
+    folder = resolve(name_or_path)
+    configs = json.loads((folder / "card.json").read_text())["configs"]
+    if "shape" not in configs:
+        raise ValueError(f"{folder}: this model ships no shape prior (card.json has no 'shape' config)")
+    return _shape_of(folder, configs)

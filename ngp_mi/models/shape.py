@@ -207,8 +207,11 @@ class CoarseShapes:
     --coarse-shapes``; picklable (worker processes load the model themselves, once).
     """
 
-    def __init__(self, run: str | Path, resolution: int = 64):
+    def __init__(self, run: str | Path, resolution: int = 64, load: Callable[[str], ShapeModel] | None = None):
+        """``load`` reads the model from ``run`` (default: :meth:`ShapeModel.from_run`, a ``train shape``
+        run; :func:`ngp_mi.models.pretrained.load_shape` for a shipped model); module-level, so picklable."""
         self.run, self.resolution = str(run), int(resolution)
+        self.load = load
         self.meta = {"shape_run": self.run, "resolution": self.resolution}
         self._model: ShapeModel | None = None
 
@@ -217,5 +220,5 @@ class CoarseShapes:
 
     def __call__(self, grid: Callable[[int], np.ndarray]) -> TriangleMesh | None:
         if self._model is None:
-            self._model = ShapeModel.from_run(self.run)
+            self._model = (self.load or ShapeModel.from_run)(self.run)
         return self._model.reconstruct(grid(self._model.config.voxel_resolution), self.resolution).mesh

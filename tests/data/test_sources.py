@@ -53,3 +53,30 @@ def test_coarse_shapes_need_their_reconstruction(tmp_path):
     config = DatasetConfig(source="chair", num_shapes=1, views=1, resolution=16, coarse_shapes="some/run")
     with pytest.raises(ValueError, match="coarse_shapes and reconstruct go together"):
         render_dataset(config, tmp_path, progress=False)
+
+
+def test_coarse_shapes_of_a_shipped_model(tmp_path):
+    """--coarse-shapes chair: the shipped model's G_shape reconstructs the shapes (what `evaluate maps
+    --coarse-data` scores a shipped model on); a name that is neither a run nor a model fails up front."""
+    import pickle
+
+    from helpers import run_cli
+
+    from ngp_mi.models.pretrained import load_shape
+
+    config = DatasetConfig(source="chair", num_shapes=1, views=1, resolution=32, channels=("depth", "mask"))
+    render_dataset(config, tmp_path / "detailed", progress=False)
+    reconstruct = pickle.loads(pickle.dumps(CoarseShapes("chair", 32, load=load_shape)))  # as workers receive it
+    summary = render_dataset(dataclasses.replace(config, coarse_shapes="chair", coarse_resolution=32),
+                             tmp_path / "coarse", progress=False, reconstruct=reconstruct)
+    assert summary["views_rendered"] == 1, summary["skipped_shapes"]
+    detailed, coarse = ReflectanceMapDataset(tmp_path / "detailed")[0], ReflectanceMapDataset(tmp_path / "coarse")[0]
+    assert coarse["mask"].sum() > 0 and not torch.equal(detailed["depth"], coarse["depth"])
+    def box(mask: torch.Tensor) -> torch.Tensor:  # rows and columns the object spans (thin legs: masks barely overlap)
+        rows, cols = torch.nonzero(mask[0] > 0, as_tuple=True)
+        return torch.stack([rows.min(), rows.max(), cols.min(), cols.max()])
+
+    assert (box(detailed["mask"]) - box(coarse["mask"])).abs().max() <= 3  # the same chair, where the camera sees it
+    done = run_cli("render-dataset", "--source", "chair", "--num-shapes", "1", "--views", "1", "--res", "16",
+                   "--out", str(tmp_path / "x"), "--coarse-shapes", "no_such_model")
+    assert done.returncode == 1 and "'no_such_model': not a shipped model (car, chair" in done.stderr
