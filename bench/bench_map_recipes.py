@@ -37,7 +37,7 @@ from pathlib import Path
 import torch
 
 from ngp_mi.atomic import write_json
-from ngp_mi.eval.compare import NGP_METHOD, NO_SP_METHOD, CompareConfig, run_compare
+from ngp_mi.eval.compare import NGP_METHOD, NO_SP_METHOD, SPECULAR_METRICS, CompareConfig, run_compare
 from ngp_mi.eval.maps_eval import evaluate_maps
 from ngp_mi.training.maps import seed_from_maps_run, train_maps
 
@@ -55,7 +55,7 @@ def score_images(folder: Path) -> dict:
               if method in by_method}
     out = {"images": {k: {"psnr": v["psnr_srgb_masked"], "flip": v["flip_masked"]} for k, v in images.items()}}
     if NGP_METHOD in by_method:
-        out["specular_placement"] = {k: by_method[NGP_METHOD][f"specular_{k}"] for k in ("precision", "recall", "added")}
+        out["specular_placement"] = {k.removeprefix("specular_"): by_method[NGP_METHOD][k] for k in SPECULAR_METRICS}
     return out
 
 

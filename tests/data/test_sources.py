@@ -72,6 +72,7 @@ def test_coarse_shapes_of_a_shipped_model(tmp_path):
     assert summary["views_rendered"] == 1, summary["skipped_shapes"]
     detailed, coarse = ReflectanceMapDataset(tmp_path / "detailed")[0], ReflectanceMapDataset(tmp_path / "coarse")[0]
     assert coarse["mask"].sum() > 0 and not torch.equal(detailed["depth"], coarse["depth"])
+
     def box(mask: torch.Tensor) -> torch.Tensor:  # rows and columns the object spans (thin legs: masks barely overlap)
         rows, cols = torch.nonzero(mask[0] > 0, as_tuple=True)
         return torch.stack([rows.min(), rows.max(), cols.min(), cols.max()])

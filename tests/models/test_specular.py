@@ -248,10 +248,9 @@ def test_the_sparsity_prior_is_the_object_mean_of_i_rs_and_darkens_g_sp(data):
         maps = MapsModel(TINY_MAPS)
         maps.load_state_dict(maps_seed_state)
         model = SpecularModel(SpecularConfig(**{**TINY.__dict__, "lambda_sparse": weight, "lr": 1e-3}))
-        for _ in range(1):
-            for depth, real in zip(*data):
-                torch.manual_seed(1)
-                steps = model.optimize(maps, depth, real)
+        for depth, real in zip(*data):
+            torch.manual_seed(1)
+            steps = model.optimize(maps, depth, real)
         assert math.isfinite(steps["sparse"]) and steps["sparse"] >= 0
         torch.manual_seed(2)
         normal, diffuse_net, mask, _ = model.generated_diffuse(maps, probe)
