@@ -8,8 +8,10 @@ views at 64²):
 * ``evaluate maps`` (coarse depth: the truth smoothed by σ = 2 px): G_n's and the coarse depth's own
   normal error, the exemplar reconstruction L1 beside the best single colour per view, the spread
   over z_da, the appearance-diversity ratio;
-* ``compare --maps-checkpoint`` on 3 held-out chairs × 2 views under the rig: sRGB PSNR / FLIP on
-  the object of NGP without and with G_sp^real against a 1024-spp path-traced reference.
+* ``compare --maps-checkpoint`` on ``--compare-set`` held-out chairs × views under the rig (10 × 4;
+  3 × 2, the figure before 2026-12-04, moved FLIP by ±0.03 between neighbouring checkpoints): sRGB
+  PSNR / FLIP on the object of NGP without and with G_sp^real against a 1024-spp path-traced
+  reference, and where G_sp^real puts its light.
 
 With ``--maps-from RUN`` every arm starts from that run's map networks at ``--iterations`` and
 trains only the G_sp^real stage (for switches of that stage; ``train min`` is then the stage's).
@@ -44,16 +46,21 @@ from ngp_mi.training.maps import seed_from_maps_run, train_maps
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def score_images(folder: Path) -> dict:
-    """``compare`` of the arm's last checkpoint: NGP's image without and with G_sp^real, and where
-    G_sp^real puts its light (``specular_placement``: precision, recall, added)."""
+def score_images(folder: Path, compare_set: tuple[int, int]) -> dict:
+    """``compare`` of the arm's last checkpoint on ``compare_set`` (shapes, views): NGP's image without
+    and with G_sp^real, and where G_sp^real puts its light (``specular_placement``: precision,
+    recall, added)."""
     run = folder / "run"
-    summary = run_compare(CompareConfig(num_shapes=3, views=2, resolution=64, light_setups=("rig",),
-                                        seed=500, maps_checkpoint=str(run)), folder / "compare", log=lambda *_: None)
+    shapes, views = compare_set
+    source = json.loads((run / "recipe.json").read_text())["tables"]["data"]["source"]  # the arm's family
+    summary = run_compare(CompareConfig(source=source, num_shapes=shapes, views=views, resolution=64,
+                                        light_setups=("rig",), seed=500, maps_checkpoint=str(run)),
+                          folder / "compare", log=lambda *_: None)
     by_method = {row["method"]: row for row in summary}
     images = {label: by_method[method] for label, method in (("without G_sp", NO_SP_METHOD), ("NGP", NGP_METHOD))
               if method in by_method}
-    out = {"images": {k: {"psnr": v["psnr_srgb_masked"], "flip": v["flip_masked"]} for k, v in images.items()}}
+    out = {"compare_set": [shapes, views],
+           "images": {k: {"psnr": v["psnr_srgb_masked"], "flip": v["flip_masked"]} for k, v in images.items()}}
     if NGP_METHOD in by_method:
         out["specular_placement"] = {k.removeprefix("specular_"): by_method[NGP_METHOD][k] for k in SPECULAR_METRICS}
     return out
@@ -67,8 +74,9 @@ def run_arm(name: str, overrides: list[str], args: argparse.Namespace, out: Path
     if saved.exists():
         result = json.loads(saved.read_text())
         if result.get("overrides") == overrides and result.get("budget", budget) == budget:
-            if "specular_placement" not in result and "NGP" in result["images"]:  # an arm scored before it existed
-                result.update(score_images(folder))
+            # an arm scored on another compare set (3 × 2 before the set was recorded) is scored again
+            if result.get("compare_set", [3, 2]) != list(args.compare_set):
+                result.update(score_images(folder, args.compare_set))
                 write_json(saved, result)
             return result
     if args.maps_from:
@@ -80,7 +88,7 @@ def run_arm(name: str, overrides: list[str], args: argparse.Namespace, out: Path
     minutes = (time.perf_counter() - began) / 60
     maps = evaluate_maps(run, args.held_out, folder / "eval", coarse_sigma=2.0)
     result = {"arm": name, "overrides": overrides, "budget": budget, "train_minutes": minutes, "maps": maps,
-              **score_images(folder)}
+              **score_images(folder, args.compare_set)}
     write_json(saved, result)
     return result
 
@@ -96,6 +104,8 @@ def main() -> None:
     parser.add_argument("--out", default="outputs/bench/recipes")
     parser.add_argument("--maps-from", help="a run whose map networks at --iterations every arm starts from "
                                             "(arms then differ in the G_sp^real stage only)")
+    parser.add_argument("--compare-set", type=int, nargs=2, default=(10, 4), metavar=("SHAPES", "VIEWS"),
+                        help="held-out shapes × views that compare scores the images on (default 10 × 4)")
     args = parser.parse_args()
     out = Path(args.out)
     results = []
@@ -107,7 +117,8 @@ def main() -> None:
         (out / "results.json").write_text(json.dumps(results, indent=2))
     print(f"# bench_map_recipes — {time.strftime('%Y-%m-%d')}, {platform.machine()}, torch {torch.__version__} "
           f"({torch.get_num_threads()} threads); train/maps_cpu.toml cut to {args.iterations} + {args.specular} "
-          f"steps, seed {args.seed}; held-out {args.held_out}\n")
+          f"steps, seed {args.seed}; held-out {args.held_out}; images: compare on "
+          f"{args.compare_set[0]} × {args.compare_set[1]} of them\n")
     print("| arm | diversity ratio | spread over z_da | exemplar L1 (single colour) | G_n / own normals ° (σ 2 px) "
           "| w/o G_sp PSNR / FLIP | NGP PSNR / FLIP | G_sp^real's light: precision / recall | train min |\n"
           "|---|---|---|---|---|---|---|---|---|")

@@ -48,7 +48,7 @@ wait "$maps"
 "$bin" render-dataset --source "$family" --out "$held_out" --num-shapes 20 --views 4 --res 64 --seed 500 \
   --real-spp 64 --quiet
 "$bin" evaluate maps --run "$maps_run" --data "$held_out" --coarse-sigma 2
-"$bin" compare --source "$family" --out "$maps_run/compare" --num-shapes 3 --views 2 --res 64 \
+"$bin" compare --source "$family" --out "$maps_run/compare" --num-shapes 10 --views 4 --res 64 \
   --seed 500 --lights rig --maps-checkpoint "$maps_run"
 "$bin" export-model --maps-run "$maps_run" "${shape_args[@]}" \
   --out "ngp_mi/pretrained/$family" --family "$family" \
