@@ -46,7 +46,9 @@ class MapsConfig:
     lr: float = 1e-4
     beta1: float = 0.5
     # R_BP's constants of this model's family (Constants: chairs 0.8 / 0.2, cars 0.6 / 0.4); training
-    # shades with k_d, NGP's images with all three.
+    # shades with k_d, NGP's images with all three. k_d 1 (the `cpu` recipe) makes R_diff / π the
+    # radiance of a Lambertian surface of the albedo map, as the path-traced references are; the
+    # paper's k_d < 1 leaves R_diff dark where R_BP's specular term is left out.
     k_d: float = DEFAULT.k_d
     k_s: float = DEFAULT.k_s
     alpha: float = DEFAULT.alpha
