@@ -144,7 +144,7 @@ def shade_maps(normal: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor, d
         return shade(normal, albedo, mask, lights, camera, mode="blinn_phong", k_d=c.k_d, k_s=c.k_s,
                      alpha=c.alpha, depth=depth) / math.pi
     image = shade(normal, albedo, mask, overhead_rig() if variant == "ngp_plus" else lights, camera, mode="diffuse",
-                  k_d=c.k_d, depth=depth) / math.pi
+                  k_d=c.diffuse_k_d, depth=depth) / math.pi
     if variant == "ngp_plus" and added_lights:
         image = image + shade(normal, albedo, mask, added_lights, camera, mode="blinn_phong", k_d=c.k_d, k_s=c.k_s,
                               alpha=c.alpha, depth=depth) / math.pi

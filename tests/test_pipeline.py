@@ -91,6 +91,32 @@ def test_a_model_trained_with_car_constants_is_shaded_with_them_everywhere(tmp_p
     torch.testing.assert_close(dark["image"], (no_sp["image"] + dark["specular"]).clamp_min(0))
 
 
+def test_k_diff_shades_r_diff_alone_and_leaves_r_bp_at_its_split(tmp_path):
+    """[model] k_diff: NGP's R_diff, the training's diffuse images and G_sp^real's input use it; NGP-BP
+    keeps R_BP's k_d / k_s; a negative one is refused; the viewer's R_BP sliders keep it."""
+    with pytest.raises(ValueError, match="k_diff"):
+        MapsConfig(k_diff=-0.5)
+    torch.manual_seed(2)
+    config = MapsConfig(ngf=8, blocks=1, nef=8, ndf=8, rf_maps=(16, 34), rf_albedo=(16,), k_diff=1.0)
+    save(tmp_path / "run", 1, [MapsModel(config), SpecularModel(SpecularConfig(ngf=8, blocks=1, ndf=8, rf_image=(16,)))],
+         {})
+    maps, specular = MapsModel.from_run(tmp_path / "run"), SpecularModel.from_run(tmp_path / "run")
+    assert maps.config.constants == Constants(0.8, 0.2, 4.0, 1.0) and maps.config.constants.diffuse_k_d == 1.0
+    assert Constants(0.8, 0.2, 4.0).diffuse_k_d == 0.8  # the paper's: R_diff is R_BP's diffuse term
+    camera = Camera.orbit(10.0, 30.0, 32)
+    box = trimesh.creation.box(extents=(0.6, 0.5, 0.4))
+    projected = project_depth(torch.as_tensor(box.vertices, dtype=torch.float32), box.faces, camera)
+    lights = overhead_rig()
+    args = (projected.depth, projected.mask, camera, box.bounds, torch.zeros(1, maps.config.latent_dim), lights)
+    no_sp, bp, full = (ngp_image(maps, specular, *args, variant=v) for v in ("no_sp", "ngp_bp", "ngp"))
+    n, a, m = no_sp["normal"], no_sp["albedo"], projected.mask
+    torch.testing.assert_close(no_sp["image"], shade(n, a, m, lights, camera, mode="diffuse", k_d=1.0) / math.pi)
+    torch.testing.assert_close(bp["image"], shade(n, a, m, lights, camera, k_d=0.8, k_s=0.2, alpha=4.0) / math.pi)
+    base = shade(n, a, m, CameraLights.from_lights(lights, [camera]), [camera], k_d=1.0, mode="diffuse")
+    torch.testing.assert_close(maps.render_diffuse(n, a, m, [camera]), base)
+    torch.testing.assert_close(full["specular"], specular.specular(n, 2 * base - 1, m))
+
+
 # ----------------------------------------------------------------------------- NGPScene: handles and stage caching
 
 def _runs_of(scene):

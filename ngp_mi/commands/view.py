@@ -144,7 +144,8 @@ class ViewerState:
     def set_constants(self, k_d: float, k_s: float, alpha: float) -> str | None:
         if not (0 <= k_d <= 10 and 0 <= k_s <= 10 and 0 < alpha <= 1000):
             return f"k_d, k_s must lie in [0, 10] and α in (0, 1000], got {k_d}, {k_s}, {alpha}"
-        self.scene.set_constants(Constants(float(k_d), float(k_s), float(alpha)))
+        # R_diff's own k_diff (a trained model's) stays: the sliders are R_BP's
+        self.scene.set_constants(Constants(float(k_d), float(k_s), float(alpha), self.scene.constants.k_diff))
         return None
 
     def set_shown(self, name: str) -> str | None:

@@ -45,13 +45,16 @@ class MapsConfig:
     latent_dim: int = 8
     lr: float = 1e-4
     beta1: float = 0.5
-    # R_BP's constants of this model's family (Constants: chairs 0.8 / 0.2, cars 0.6 / 0.4); training
-    # shades with k_d, NGP's images with all three. k_d 1 (the `cpu` recipe) makes R_diff / π the
-    # radiance of a Lambertian surface of the albedo map, as the path-traced references are; the
-    # paper's k_d < 1 leaves R_diff dark where R_BP's specular term is left out.
+    # R_BP's constants of this model's family (Constants: chairs 0.8 / 0.2, cars 0.6 / 0.4); NGP-BP
+    # shades with all three.
     k_d: float = DEFAULT.k_d
     k_s: float = DEFAULT.k_s
     alpha: float = DEFAULT.alpha
+    # R_diff's own k_d (training's diffuse images, NGP's image); None: k_d, the paper's. 1 (the `cpu`
+    # recipe) makes R_diff / π the radiance of a Lambertian surface of the albedo map, as the
+    # path-traced references are; the paper's k_d < 1 leaves R_diff dark where R_BP's specular term
+    # is left out. See Constants.k_diff.
+    k_diff: float | None = None
     rf_maps: tuple[int, ...] = (70, 142)
     rf_albedo: tuple[int, ...] = (34,)
     # G_n predicts a correction to the normals of the input depth (finite differences, held fixed)
@@ -101,13 +104,15 @@ class MapsConfig:
             raise ValueError(f"encoder_pool must be one of {ENCODER_POOLS}, got {self.encoder_pool!r}")
         if self.albedo_cycle_noc not in ("generated", "real"):
             raise ValueError(f"albedo_cycle_noc must be 'generated' or 'real', got {self.albedo_cycle_noc!r}")
+        if self.k_diff is not None and not 0 <= self.k_diff <= 10:
+            raise ValueError(f"k_diff must lie in [0, 10] (or be absent: R_BP's k_d), got {self.k_diff!r}")
         for name in ("depth_blur", "normal_cycle_blur"):
             if not 0 <= getattr(self, name) <= 8:
                 raise ValueError(f"{name} must be a blur radius σ in px within [0, 8], got {getattr(self, name)!r}")
 
     @property
     def constants(self) -> Constants:
-        return Constants(self.k_d, self.k_s, self.alpha)
+        return Constants(self.k_d, self.k_s, self.alpha, self.k_diff)
 
 
 def depth_to_net(depth: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -182,8 +187,8 @@ class MapsModel(BaseModel):
     def render_diffuse(self, normal: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor,
                        cameras: list[Camera]) -> torch.Tensor:
         """R_diff under the training lights, each view in its own camera space."""
-        return shade(normal, albedo, mask, self.training_lights(cameras, normal), cameras, k_d=self.config.k_d,
-                     mode="diffuse")
+        return shade(normal, albedo, mask, self.training_lights(cameras, normal), cameras,
+                     k_d=self.config.constants.diffuse_k_d, mode="diffuse")
 
     def render_highlight(self, normal: torch.Tensor, mask: torch.Tensor, cameras: list[Camera]) -> torch.Tensor:
         """The specular term of R_BP alone (k_s, α of the constants, white specular albedo) under the

@@ -1,5 +1,6 @@
 """ngp-mi view: the viewer's state without a browser, then the page in a real headless Chromium."""
 
+import dataclasses
 import io
 import json
 import socket
@@ -16,6 +17,7 @@ from ngp_mi.cli import main
 from ngp_mi.commands.view import LatestOnly, Viewer, ViewerState, camera_from_pose, pose_of
 from ngp_mi.lights import PointLight, overhead_rig
 from ngp_mi.pipeline import NGP
+from ngp_mi.render.shading import Constants
 
 
 @pytest.fixture(scope="module")
@@ -53,6 +55,8 @@ def test_the_state_takes_every_handle_and_names_bad_input(ngp, box, tmp_path):
     assert "could not load the mesh" in state.load_mesh(str(tmp_path / "missing.obj"))
     assert state.shape == {"mesh": str(box)}  # unchanged
     assert "k_d, k_s must lie in" in state.set_constants(0.8, 0.2, -1.0)
+    state.scene.set_constants(dataclasses.replace(state.scene.constants, k_diff=1.0))  # a model with R_diff's own k_d
+    assert state.set_constants(0.6, 0.4, 8.0) is None and state.scene.constants == Constants(0.6, 0.4, 8.0, 1.0)
     assert "map must be one of" in state.set_shown("colour")
     for shown in ("depth", "normal", "albedo", "specular"):
         assert state.set_shown(shown) is None and state.render(state.scene.camera).image.shape == (32, 32, 3)

@@ -56,11 +56,21 @@ class Constants:
     The one home of these values: :func:`shade`'s defaults, the map networks' training
     (``MapsConfig``), NGP's images and ``compare`` take them from here or from a trained model's
     config. Paper: chairs k_d 0.8 / k_s 0.2, cars 0.6 / 0.4, α = 4 (:data:`PAPER_CONSTANTS`).
+
+    ``k_diff`` is R_diff's k_d where R_diff stands alone (NGP's image, the map networks' diffuse
+    images); None: R_BP's ``k_d``, as in the paper, where R_diff is R_BP's diffuse term. 1 makes
+    R_diff / π the radiance of a Lambertian surface of the albedo; R_BP keeps its energy split.
     """
 
     k_d: float = 0.8
     k_s: float = 0.2
     alpha: float = 4.0
+    k_diff: float | None = None
+
+    @property
+    def diffuse_k_d(self) -> float:
+        """The k_d R_diff shades with: ``k_diff``, or R_BP's ``k_d`` when it is None."""
+        return self.k_d if self.k_diff is None else self.k_diff
 
     @classmethod
     def of_family(cls, family: str) -> "Constants":
