@@ -84,7 +84,8 @@ Reference: path tracing (max depth 6) at {config.reference_spp} spp ({fmt(ref['m
 <h2>Conventions</h2>
 <ul><li>All images are linear RGB radiance. R_diff and R_BP are divided by π: R_diff with k_d = 1 equals the
 radiance of a Lambertian surface of albedo I_d under the same lights, and R_BP uses the paper's constants
-(k_d {config.constants.k_d}, k_s {config.constants.k_s}, α {config.constants.alpha:g}).</li>
+(k_d {config.constants.k_d}, k_s {config.constants.k_s}, α {config.constants.alpha:g}); NGP's R_diff shades with
+k_d {config.constants.diffuse_k_d:g} (the model's k_diff, else R_BP's k_d).</li>
 <li>No exposure or tone mapping; sRGB metrics apply the sRGB transfer function to values clipped to [0, 1].</li>
 <li>PSNR uses peak 1; SSIM is scikit-image's (Gaussian σ 1.5); FLIP is NVIDIA's (LDR, 67 pixels per degree).
 "_masked" averages over the object only (mask of the G-buffer); times are medians over images, after a warm-up.
