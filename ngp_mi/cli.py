@@ -180,7 +180,7 @@ def render_dataset(args: argparse.Namespace) -> int:
 
         load = None  # a `train shape` run; else a model folder or shipped name, checked here, not per shape
         if not (Path(args.coarse_shapes) / "recipe.json").exists():
-            pretrained.resolve(args.coarse_shapes)
+            pretrained.load_shape(args.coarse_shapes).require_encoder()
             load = pretrained.load_shape
         reconstruct = CoarseShapes(args.coarse_shapes, args.coarse_resolution, load=load)
     summary = render_dataset(config, args.out, shard=parse_shard(args.shard), strict=args.strict,
@@ -499,20 +499,39 @@ def export_model(args: argparse.Namespace) -> int:
 
 def evaluate_flags(p: argparse.ArgumentParser) -> None:
     from ngp_mi.eval.maps_eval import evaluate_maps
+    from ngp_mi.eval.shape_eval import evaluate_shape
 
-    p.add_argument("stage", choices=["maps"], help="what to evaluate")
-    p.add_argument("--run", required=True, help="training output folder (with ckpt-*)")
-    p.add_argument("--data", required=True, help="held-out render-dataset folder")
-    p.add_argument("--out", help="output folder (default: RUN/eval)")
+    p.add_argument("stage", choices=["maps", "shape"], help="what to evaluate: map networks, or a shape prior")
+    p.add_argument("--run", required=True, help="maps: a `train maps` run (with ckpt-*); shape: a `train shape` run, "
+                                                "a shipped model's name (chair, car) or an exported model folder")
+    p.add_argument("--data", help="maps: the held-out render-dataset folder (required)")
+    p.add_argument("--out", help="output folder (default: RUN/eval, or RUN/eval-shape)")
     p.add_argument("--coarse-sigma", type=float, default=default(evaluate_maps, "coarse_sigma"),
-                   help="smoothing of the coarse depth, px (without --coarse-data) (default: %(default)s)")
-    p.add_argument("--coarse-data", help="the same shapes and views rendered with `render-dataset --coarse-shapes "
+                   help="maps: smoothing of the coarse depth, px (without --coarse-data) (default: %(default)s)")
+    p.add_argument("--coarse-data", help="maps: the same shapes and views rendered with `render-dataset --coarse-shapes "
                                          "SHAPE_RUN`: coarse depth from the shape autoencoder")
+    p.add_argument("--source", default=default(evaluate_shape, "source"),
+                   help="shape: the shapes to reconstruct, a family or meshes (default: %(default)s)")
+    p.add_argument("--num-shapes", type=int, default=default(evaluate_shape, "num_shapes"),
+                   help="shape: how many (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=default(evaluate_shape, "seed"),
+                   help="shape: the first shape's seed; 500-519 are held out of every shipped prior (default: %(default)s)")
+    p.add_argument("--res", type=int, default=default(evaluate_shape, "resolution"),
+                   help="shape: marching-cubes resolution of the reconstructions (default: %(default)s)")
 
 
 def evaluate(args: argparse.Namespace) -> int:
+    if args.stage == "shape":
+        from ngp_mi.eval.shape_eval import evaluate_shape
+
+        out = args.out or (f"{args.run}/eval-shape" if (Path(args.run) / "recipe.json").exists()
+                           else f"outputs/eval-shape/{Path(args.run).name}")
+        evaluate_shape(args.run, out, args.source, args.num_shapes, args.seed, args.res)
+        return 0
     from ngp_mi.eval.maps_eval import evaluate_maps
 
+    if not args.data:
+        raise ValueError("evaluate maps: --data (a held-out render-dataset folder) is required")
     result = evaluate_maps(args.run, args.data, args.out or f"{args.run}/eval", coarse_sigma=args.coarse_sigma,
                            coarse_data=args.coarse_data)
     print(json.dumps(result, indent=1))
@@ -567,9 +586,11 @@ COMMANDS: dict[str, tuple[Callable, Callable, str, str]] = {
                      "Write the inference networks of a `train maps` run (and a `train shape` run) as safetensors with "
                      "a card.json (configs, recipes, steps, time, machine, figures): what `--model` loads and what "
                      "ngp_mi/pretrained/ ships."),
-    "evaluate": (evaluate_flags, evaluate, "evaluate trained map networks on held-out maps (normal error, albedo)",
-                 "Normal angular error of G_n from a coarse depth against normals from the same depth (NGP w/o G_n); "
-                 "E_da -> G_da albedo reconstruction and diversity."),
+    "evaluate": (evaluate_flags, evaluate, "evaluate trained map networks on held-out maps (normal error, albedo), "
+                 "or a shape prior's reconstructions of held-out shapes",
+                 "maps: normal angular error of G_n from a coarse depth against normals from the same depth (NGP w/o "
+                 "G_n); E_da -> G_da albedo reconstruction and diversity. shape: the autoencoder's IoU and Chamfer-L2 "
+                 "on shapes it was not trained on, with a contact sheet."),
 }
 
 

@@ -332,3 +332,22 @@ def open_in_chromium(page: Path, timeout: float = 60.0) -> dict:
         return {"images": images, "errors": list(browser.errors)}
     finally:
         browser.close()
+
+
+def without_encoder(folder, out):
+    """A copy of a model folder as exported before G_shape's encoder was shipped."""
+    import json
+
+    from safetensors.torch import load_file, save_file
+
+    from ngp_mi.models.pretrained import _sha256
+
+    out.mkdir()
+    for f in folder.iterdir():
+        (out / f.name).write_bytes(f.read_bytes())
+    tensors = {k: v for k, v in load_file(out / "shape.safetensors").items() if not k.startswith("shape.encoder.")}
+    save_file(tensors, out / "shape.safetensors")
+    card = json.loads((out / "card.json").read_text())
+    card["files"]["shape.safetensors"]["sha256"] = _sha256(out / "shape.safetensors")
+    (out / "card.json").write_text(json.dumps(card))
+    return out

@@ -31,7 +31,9 @@ from ngp_mi.models.shape import ShapeConfig, ShapeModel
 from ngp_mi.models.specular import SpecularConfig, SpecularModel
 
 PRETRAINED_ROOT = Path(__file__).resolve().parents[1] / "pretrained"
-INFERENCE_NETWORKS = {"maps": ("G_n", "G_da", "E_da"), "specular": ("G_sp",), "shape": ("decoder", "G_latent")}
+# G_shape's encoder reconstructs a given shape (NGP's coarse shapes, `render-dataset --coarse-shapes`); model
+# folders exported before it was shipped hold the other two and load with ``has_encoder`` False.
+INFERENCE_NETWORKS = {"maps": ("G_n", "G_da", "E_da"), "specular": ("G_sp",), "shape": ("encoder", "decoder", "G_latent")}
 
 
 def available() -> list[str]:
@@ -103,6 +105,9 @@ def export_model(out: str | Path, maps_run: str | Path, shape_run: str | Path | 
     shape, shape_facts = None, None
     if shape_run:
         shape, shape_facts = ShapeModel.from_run(shape_run), _run_facts(Path(shape_run))
+        kept = ((shape_facts.get("recipe") or {}).get("train") or {}).get("encoder_for")
+        if kept:  # an encoder trained for another prior's G_shape: carry that prior's facts too
+            shape_facts["decoder_and_G_latent"] = json.loads((resolve(kept) / "card.json").read_text())["shape"]
     elif shape_from:
         *_, shape, kept_card = load_model(shape_from)  # read (and sha-checked) before out is written
         if shape is None:
@@ -116,7 +121,9 @@ def export_model(out: str | Path, maps_run: str | Path, shape_run: str | Path | 
         configs["specular"] = specular.config_dict()["specular"]
     files = {"maps.safetensors": tensors}
     if shape is not None:
-        files["shape.safetensors"] = _tensors(shape, INFERENCE_NETWORKS["shape"], "shape")
+        # a prior kept from a folder that ships no encoder stays without one (its weights were never trained)
+        names = tuple(n for n in INFERENCE_NETWORKS["shape"] if shape.has_encoder or n != "encoder")
+        files["shape.safetensors"] = _tensors(shape, names, "shape")
         configs["shape"] = shape.config_dict()["shape"]
     for name, data in files.items():
         with atomic_path(out / name) as tmp:
@@ -156,8 +163,13 @@ def load_model(name_or_path: str | Path) -> tuple[MapsModel, SpecularModel | Non
 
 def _shape_of(folder: Path, configs: dict[str, Any]) -> ShapeModel:
     shape = ShapeModel(config_from_dict(ShapeConfig, configs["shape"]))
-    _load_into(shape, load_file(folder / "shape.safetensors"), "shape", INFERENCE_NETWORKS["shape"],
-               folder / "shape.safetensors")
+    tensors = load_file(folder / "shape.safetensors")
+    names = INFERENCE_NETWORKS["shape"]
+    if not any(key.startswith("shape.encoder.") for key in tensors):  # exported before the encoder was shipped
+        names = tuple(n for n in names if n != "encoder")
+        shape.has_encoder = False
+    _load_into(shape, tensors, "shape", names, folder / "shape.safetensors")
+    shape.source = str(folder)
     return shape.eval()
 
 

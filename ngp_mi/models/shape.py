@@ -91,6 +91,8 @@ class ShapeModel(BaseModel):
         nets = define_shape_nets(config)
         self.encoder, self.decoder = nets["encoder"], nets["decoder"]
         self.G_latent, self.D_latent = nets["G_latent"], nets["D_latent"]
+        self.has_encoder = True  # False: loaded from a model folder that ships no encoder (see encode)
+        self.source = "a new model"
         c = config
         self.opt_ae = torch.optim.Adam([*self.encoder.parameters(), *self.decoder.parameters()], lr=c.ae_lr,
                                        betas=(0.5, 0.999))
@@ -115,9 +117,18 @@ class ShapeModel(BaseModel):
             accuracy = ((predicted > LEVEL) == (occ > 0.5)).float().mean()
         return {"ae_mse": loss.item(), "ae_point_accuracy": accuracy.item()}
 
+    def require_encoder(self) -> "ShapeModel":
+        """Self, or a clear error when the encoder's weights were not loaded (they would be a random
+        initialisation, which reconstructs every shape as the same blob)."""
+        if not self.has_encoder:
+            raise ValueError(f"{self.source}: this shape prior was exported without its encoder, so it cannot "
+                             "reconstruct a given shape; re-export it from its `train shape` run, or train an "
+                             "encoder for it (`train shape` with [train] encoder_for)")
+        return self
+
     @torch.no_grad()
     def encode(self, voxels: torch.Tensor, batch: int = 32) -> torch.Tensor:
-        self.encoder.eval()
+        self.require_encoder().encoder.eval()
         return torch.cat([self.encoder(voxels[i:i + batch]) for i in range(0, len(voxels), batch)])
 
     # ---- phase 2

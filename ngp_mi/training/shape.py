@@ -9,7 +9,9 @@ The recipe (TOML; :mod:`ngp_mi.training.recipe`) has three tables:
 * ``[model]`` — fields of :class:`~ngp_mi.models.shape.ShapeConfig`.
 * ``[train]`` (:class:`ShapeTrain`) — ``stages`` (a list of ``[resolution, iterations]`` of the
   autoencoder, IM-NET's progressive 16³ → 32³ → 64³), ``gan_iterations``, batch sizes, seed,
-  output folder, logging and checkpoint periods, device, and the sample metrics' size.
+  output folder, logging and checkpoint periods, device, and the sample metrics' size;
+  ``encoder_for`` (a model folder or shipped name) keeps that prior's decoder and G_latent and
+  trains an encoder for them alone (priors exported without one cannot reconstruct shapes).
 
 One step counter runs through both phases (autoencoder steps first). Outputs under ``out``:
 ``recipe.json``, ``log.jsonl`` (losses; metrics records), ``metrics.json`` (autoencoder IoU on
@@ -34,6 +36,7 @@ from ngp_mi.atomic import write_json
 from ngp_mi.data.shapes import ShapeDataConfig, ShapeDataset, build_shape_dataset
 from ngp_mi.eval.shape_metrics import chamfer_matrix, coverage_mmd
 from ngp_mi.geometry.occupancy import surface_samples, voxel_iou
+from ngp_mi.models import pretrained
 from ngp_mi.models.shape import ShapeConfig, ShapeModel
 from ngp_mi.training import loop
 from ngp_mi.training.recipe import from_table, out_override, positive, read_tables, record, training_device
@@ -64,8 +67,14 @@ class ShapeTrain:
     device: str = "auto"
     eval_samples: int = 16
     eval_resolution: int = 64
+    # A shipped model's name or a model folder: keep its G_shape (decoder and G_latent, fixed) and train
+    # only an encoder for it, so a prior exported without one can reconstruct given shapes. "": off.
+    encoder_for: str = ""
 
     def __post_init__(self) -> None:
+        if self.encoder_for and self.gan_iterations:
+            raise ValueError(f"[train] encoder_for = {self.encoder_for!r} keeps that prior's G_latent: "
+                             f"gan_iterations must be 0, got {self.gan_iterations}")
         if not self.stages or any(r < 1 or n < 0 for r, n in self.stages):
             raise ValueError(f"stages must be a non-empty list of [resolution, iterations], got {self.stages!r}")
         positive(self, "batch_size", "gan_batch_size", "log_every", "checkpoint_every", "eval_resolution")
@@ -185,6 +194,19 @@ def sample_metrics(model: ShapeModel, reference: list[np.ndarray], held_out: lis
     return result
 
 
+def adopt_prior(model: ShapeModel, name_or_path: str) -> None:
+    """Copy a model folder's decoder and G_latent into ``model``, whose config must be the same."""
+    kept = pretrained.load_shape(name_or_path)
+    differ = {f.name: (getattr(model.config, f.name), getattr(kept.config, f.name))
+              for f in dataclasses.fields(model.config) if getattr(model.config, f.name) != getattr(kept.config, f.name)}
+    if differ:
+        raise ValueError(f"[train] encoder_for = {name_or_path!r}: the recipe's model differs from that prior's ("
+                         + ", ".join(f"{k}: {a!r} here, {b!r} there" for k, (a, b) in differ.items())
+                         + "); set them as it has them")
+    model.decoder.load_state_dict(kept.decoder.state_dict())
+    model.G_latent.load_state_dict(kept.G_latent.state_dict())
+
+
 def train_shape(config_path: str | Path, log=print, out: str | Path | None = None, overrides: Sequence[str] = ()) -> Path:
     """Train (or resume training) as the recipe says; ``out`` replaces ``[train] out``. Returns the output folder."""
     overrides = [*overrides, *([out_override(out)] if out else [])]
@@ -205,6 +227,11 @@ def train_shape(config_path: str | Path, log=print, out: str | Path | None = Non
     step, resumed_from = loop.resume(out, [model])
     if resumed_from is not None:
         log(f"train shape: resuming from {resumed_from} (step {step})")
+    if train.encoder_for:
+        if resumed_from is None:
+            adopt_prior(model, train.encoder_for)
+        model.decoder.requires_grad_(False)  # the autoencoder's steps then move the encoder alone
+        log(f"train shape: an encoder for {train.encoder_for}'s G_shape (decoder and G_latent fixed)")
     log(f"train shape: {len(train_ids)} training / {len(held_ids)} held-out shapes from {cache}, on {device}")
     record(out, config_path, overrides, recipe.tables)
 

@@ -5,9 +5,10 @@ import json
 import numpy as np
 import pytest
 import torch
-from helpers import SHAPE_TINY, shape_recipe
+from helpers import SHAPE_TINY, shape_recipe, without_encoder
 from safetensors.torch import load_file
 
+from ngp_mi.data.shapes import ShapeDataset
 from ngp_mi.models.checkpoint import list_checkpoints
 from ngp_mi.models.shape import ShapeModel
 from ngp_mi.training.shape import ShapeRecipe, train_shape
@@ -55,3 +56,46 @@ def test_every_preset_config_loads_and_builds(preset):
     data = recipe.data
     model = ShapeModel(recipe.model)
     assert model.encoder(torch.zeros(1, 1, *(data.voxel_resolution,) * 3)).shape == (1, model.config.code_dim)
+
+
+def test_an_encoder_is_trained_for_a_prior_exported_without_one(tiny_model, tiny_maps_run, tmp_path):
+    from ngp_mi.models.pretrained import export_model, load_shape
+    from ngp_mi.training.shape import autoencoder_iou
+
+    old = without_encoder(tiny_model, tmp_path / "old")
+    prior = load_shape(old)
+    assert not prior.has_encoder
+    with pytest.raises(ValueError, match="old: this shape prior was exported without its encoder"):
+        prior.reconstruct(np.ones((32, 32, 32), bool))
+    recipe = shape_recipe(tmp_path, "enc", gan_iterations=0, checkpoint_every=60)
+    recipe.write_text(recipe.read_text().replace("[[16, 100], [32, 150]]", "[[16, 60], [32, 60]]")
+                      + f'encoder_for = "{old}"\n')
+    run = train_shape(recipe, log=lambda *_: None)
+    trained = ShapeModel.from_run(run)
+    for name in ("decoder", "G_latent"):  # the prior's G_shape is kept exactly
+        a, b = getattr(trained, name).state_dict(), getattr(prior, name).state_dict()
+        assert all(torch.equal(a[k], b[k]) for k in a)
+    data = ShapeDataset(tmp_path / "data")
+    random_encoder = ShapeModel(trained.config)
+    random_encoder.decoder.load_state_dict(prior.decoder.state_dict())
+    # 120 encoder steps find codes the fixed decoder reconstructs; a random encoder's codes do not
+    assert autoencoder_iou(trained, data, 32) > autoencoder_iou(random_encoder, data, 32) + 0.2
+    # exported, the model ships the encoder and its card keeps the prior's own facts beside the encoder run's
+    new = export_model(tmp_path / "new", tiny_maps_run, run)
+    card = json.loads((new / "card.json").read_text())
+    assert card["shape"]["recipe"]["train"]["encoder_for"] == str(old)
+    assert card["shape"]["decoder_and_G_latent"] == json.loads((old / "card.json").read_text())["shape"]
+    assert load_shape(new).has_encoder and load_shape(new).reconstruct(data.voxels(0), 32).mesh is not None
+    # the old folder's prior kept for re-trained maps (--shape-from) stays without an encoder, not a random one
+    assert not load_shape(export_model(tmp_path / "kept", tiny_maps_run, shape_from=old)).has_encoder
+
+
+def test_encoder_for_needs_the_priors_model_and_no_gan(tiny_model, tmp_path):
+    recipe = shape_recipe(tmp_path, "bad", gan_iterations=0)
+    recipe.write_text(recipe.read_text().replace("gf = 16", "gf = 8") + f'encoder_for = "{tiny_model}"\n')
+    with pytest.raises(ValueError, match=r"the recipe's model differs from that prior's \(gf: 8 here, 16 there\)"):
+        train_shape(recipe, log=lambda *_: None)
+    recipe = shape_recipe(tmp_path, "gan")
+    recipe.write_text(recipe.read_text() + f'encoder_for = "{tiny_model}"\n')
+    with pytest.raises(ValueError, match="keeps that prior's G_latent: gan_iterations must be 0, got 50"):
+        train_shape(recipe, log=lambda *_: None)
