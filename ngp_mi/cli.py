@@ -475,7 +475,10 @@ def view(args: argparse.Namespace) -> int:
 
 
 def export_model_flags(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--maps-run", required=True, help="a `train maps` output folder")
+    p.add_argument("--maps-run", help="a `train maps` output folder (required unless --add-encoder)")
+    p.add_argument("--add-encoder", metavar="SHAPE_RUN",
+                   help="instead: put this `train shape` run's encoder ([train] encoder_for) into the model folder "
+                        "--out, whose G_shape it was trained for; nothing else changes")
     p.add_argument("--shape-run", help="a `train shape` output folder (G_shape)")
     p.add_argument("--shape-from", help="instead of --shape-run: keep G_shape (and its card facts) of this model "
                                         "folder or shipped name, when only the maps were re-trained")
@@ -488,6 +491,14 @@ def export_model_flags(p: argparse.ArgumentParser) -> None:
 def export_model(args: argparse.Namespace) -> int:
     from ngp_mi.models.pretrained import export_model
 
+    if args.add_encoder:
+        from ngp_mi.models.pretrained import add_encoder
+
+        out = add_encoder(args.out, args.add_encoder)
+        print(f"export-model: {out}: G_shape's encoder from {args.add_encoder}")
+        return 0
+    if not args.maps_run:
+        raise ValueError("export-model: --maps-run is required (or --add-encoder SHAPE_RUN)")
     figures = json.loads(open(args.figures).read()) if args.figures else None
     out = export_model(args.out, args.maps_run, args.shape_run, family=args.family, figures=figures, notes=args.notes,
                        shape_from=args.shape_from)

@@ -137,6 +137,30 @@ def export_model(out: str | Path, maps_run: str | Path, shape_run: str | Path | 
     return out
 
 
+def add_encoder(folder: str | Path, run: str | Path) -> Path:
+    """Put the encoder of a ``train shape`` run with ``[train] encoder_for`` into the model folder whose
+    G_shape it was trained for; the maps and the rest of the card stay (for folders whose runs are gone)."""
+    folder = resolve(folder)
+    card = json.loads((folder / "card.json").read_text())
+    if "shape" not in card["configs"]:
+        raise ValueError(f"{folder}: this model ships no shape prior to add an encoder to")
+    kept, trained = _shape_of(folder, card["configs"]), ShapeModel.from_run(run)
+    if trained is None:
+        raise ValueError(f"{run}: no `train shape` checkpoint")
+    for name in ("decoder", "G_latent"):
+        ours, theirs = getattr(trained, name).state_dict(), getattr(kept, name).state_dict()
+        if ours.keys() != theirs.keys() or any(not torch.equal(ours[k], theirs[k]) for k in ours):
+            raise ValueError(f"{run}: its {name} differs from {folder}'s, so its encoder was not trained for this "
+                             "prior (train it with [train] encoder_for)")
+    with atomic_path(folder / "shape.safetensors") as tmp:
+        save_file(_tensors(trained, INFERENCE_NETWORKS["shape"], "shape"), tmp)
+    card["shape"] = {**_run_facts(Path(run)), "decoder_and_G_latent": card["shape"]}
+    card["files"]["shape.safetensors"] = {"bytes": (folder / "shape.safetensors").stat().st_size,
+                                          "sha256": _sha256(folder / "shape.safetensors")}
+    write_json(folder / "card.json", card)
+    return folder
+
+
 def _load_into(model: Any, tensors: dict[str, torch.Tensor], prefix: str, names: tuple[str, ...], file: Path) -> None:
     own = {key[len(prefix) + 1:]: value for key, value in tensors.items() if key.startswith(f"{prefix}.")}
     load_weights({name: getattr(model, name) for name in names}, own, file)

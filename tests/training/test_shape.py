@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 from helpers import SHAPE_TINY, shape_recipe, without_encoder
-from safetensors.torch import load_file
+from safetensors.torch import load_file, save_file
 
 from ngp_mi.data.shapes import ShapeDataset
 from ngp_mi.models.checkpoint import list_checkpoints
@@ -59,7 +59,8 @@ def test_every_preset_config_loads_and_builds(preset):
 
 
 def test_an_encoder_is_trained_for_a_prior_exported_without_one(tiny_model, tiny_maps_run, tmp_path):
-    from ngp_mi.models.pretrained import export_model, load_shape
+    from ngp_mi.cli import main
+    from ngp_mi.models.pretrained import add_encoder, export_model, load_model, load_shape
     from ngp_mi.training.shape import autoencoder_iou
 
     old = without_encoder(tiny_model, tmp_path / "old")
@@ -86,6 +87,19 @@ def test_an_encoder_is_trained_for_a_prior_exported_without_one(tiny_model, tiny
     assert card["shape"]["recipe"]["train"]["encoder_for"] == str(old)
     assert card["shape"]["decoder_and_G_latent"] == json.loads((old / "card.json").read_text())["shape"]
     assert load_shape(new).has_encoder and load_shape(new).reconstruct(data.voxels(0), 32).mesh is not None
+    # a folder whose runs are gone takes the encoder in place; one with another decoder refuses it by name
+    patched = without_encoder(tiny_model, tmp_path / "patched")
+    assert main(["export-model", "--add-encoder", str(run), "--out", str(patched)]) == 0
+    *_, shape, card = load_model(patched)  # sha256s checked
+    assert shape.has_encoder and card["shape"]["decoder_and_G_latent"]["steps"] > 0
+    assert torch.equal(shape.encode(data.all_voxels()[:2]), trained.encode(data.all_voxels()[:2]))
+    other = without_encoder(tiny_model, tmp_path / "other")
+    tensors = load_file(other / "shape.safetensors")
+    key = next(k for k in tensors if k.startswith("shape.decoder."))
+    tensors[key] = tensors[key] + 1
+    save_file(tensors, other / "shape.safetensors")
+    with pytest.raises(ValueError, match="its decoder differs from .*other's"):
+        add_encoder(other, run)
     # the old folder's prior kept for re-trained maps (--shape-from) stays without an encoder, not a random one
     assert not load_shape(export_model(tmp_path / "kept", tiny_maps_run, shape_from=old)).has_encoder
 
