@@ -178,11 +178,9 @@ def render_dataset(args: argparse.Namespace) -> int:
         from ngp_mi.models import pretrained  # imports torch (~3 s): only coarse shapes need it
         from ngp_mi.models.shape import CoarseShapes
 
-        load = None  # a `train shape` run; else a model folder or shipped name, checked here, not per shape
-        if not (Path(args.coarse_shapes) / "recipe.json").exists():
-            pretrained.load_shape(args.coarse_shapes).require_encoder()
-            load = pretrained.load_shape
-        reconstruct = CoarseShapes(args.coarse_shapes, args.coarse_resolution, load=load)
+        # a `train shape` run, a model folder or a shipped name, checked here, not per shape
+        pretrained.load_shape_prior(args.coarse_shapes).require_encoder()
+        reconstruct = CoarseShapes(args.coarse_shapes, args.coarse_resolution, load=pretrained.load_shape_prior)
     summary = render_dataset(config, args.out, shard=parse_shard(args.shard), strict=args.strict,
                              progress=not args.quiet, workers=args.workers or default_workers(),
                              reconstruct=reconstruct)

@@ -29,16 +29,8 @@ from ngp_mi.data.shapes import ShapeDataConfig, ShapeDataset, build_shape_datase
 from ngp_mi.eval.shape_metrics import chamfer_distance
 from ngp_mi.geometry.occupancy import load_solid, surface_samples, voxel_iou
 from ngp_mi.models import pretrained
-from ngp_mi.models.shape import ShapeModel
 from ngp_mi.render.preview import mesh_preview
 from ngp_mi.viz import contact_sheet, save_png
-
-
-def load_shape_prior(run_or_model: str | Path) -> ShapeModel:
-    """A ``train shape`` run (a folder with ``recipe.json``), or a shipped model's / model folder's G_shape."""
-    if (Path(run_or_model) / "recipe.json").exists():
-        return ShapeModel.from_run(run_or_model).eval().require_encoder()
-    return pretrained.load_shape(run_or_model).require_encoder()
 
 
 @torch.no_grad()
@@ -46,7 +38,7 @@ def evaluate_shape(run_or_model: str | Path, out: str | Path, source: str = "cha
                    seed: int = 500, resolution: int = 64, surface_points: int = 2048, preview_resolution: int = 96,
                    log=print) -> dict[str, Any]:
     """Reconstruct ``num_shapes`` shapes of ``source`` from ``seed`` on; writes and returns the figures."""
-    model = load_shape_prior(run_or_model)
+    model = pretrained.load_shape_prior(run_or_model).require_encoder()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     # Occupancy points are what training reads; here only the voxels and the surface are used.

@@ -122,8 +122,7 @@ def export_model(out: str | Path, maps_run: str | Path, shape_run: str | Path | 
     files = {"maps.safetensors": tensors}
     if shape is not None:
         # a prior kept from a folder that ships no encoder stays without one (its weights were never trained)
-        names = tuple(n for n in INFERENCE_NETWORKS["shape"] if shape.has_encoder or n != "encoder")
-        files["shape.safetensors"] = _tensors(shape, names, "shape")
+        files["shape.safetensors"] = _tensors(shape, _shape_networks(shape.has_encoder), "shape")
         configs["shape"] = shape.config_dict()["shape"]
     for name, data in files.items():
         with atomic_path(out / name) as tmp:
@@ -161,6 +160,11 @@ def add_encoder(folder: str | Path, run: str | Path) -> Path:
     return folder
 
 
+def _shape_networks(has_encoder: bool) -> tuple[str, ...]:
+    """The G_shape networks a model folder holds: the encoder only where it was trained."""
+    return tuple(name for name in INFERENCE_NETWORKS["shape"] if has_encoder or name != "encoder")
+
+
 def _load_into(model: Any, tensors: dict[str, torch.Tensor], prefix: str, names: tuple[str, ...], file: Path) -> None:
     own = {key[len(prefix) + 1:]: value for key, value in tensors.items() if key.startswith(f"{prefix}.")}
     load_weights({name: getattr(model, name) for name in names}, own, file)
@@ -188,13 +192,21 @@ def load_model(name_or_path: str | Path) -> tuple[MapsModel, SpecularModel | Non
 def _shape_of(folder: Path, configs: dict[str, Any]) -> ShapeModel:
     shape = ShapeModel(config_from_dict(ShapeConfig, configs["shape"]))
     tensors = load_file(folder / "shape.safetensors")
-    names = INFERENCE_NETWORKS["shape"]
-    if not any(key.startswith("shape.encoder.") for key in tensors):  # exported before the encoder was shipped
-        names = tuple(n for n in names if n != "encoder")
-        shape.has_encoder = False
-    _load_into(shape, tensors, "shape", names, folder / "shape.safetensors")
+    # a folder exported before the encoder was shipped holds the other two
+    shape.has_encoder = any(key.startswith("shape.encoder.") for key in tensors)
+    _load_into(shape, tensors, "shape", _shape_networks(shape.has_encoder), folder / "shape.safetensors")
     shape.source = str(folder)
     return shape.eval()
+
+
+def load_shape_prior(run_or_model: str | Path) -> ShapeModel:
+    """G_shape of a ``train shape`` run (a folder with ``recipe.json``) or of a model folder / shipped name."""
+    if (Path(run_or_model) / "recipe.json").exists():
+        model = ShapeModel.from_run(run_or_model)
+        if model is None:
+            raise ValueError(f"{run_or_model}: no `train shape` checkpoint yet")
+        return model
+    return load_shape(run_or_model)
 
 
 def load_shape(name_or_path: str | Path) -> ShapeModel:

@@ -220,7 +220,7 @@ class CoarseShapes:
 
     def __init__(self, run: str | Path, resolution: int = 64, load: Callable[[str], ShapeModel] | None = None):
         """``load`` reads the model from ``run`` (default: :meth:`ShapeModel.from_run`, a ``train shape``
-        run; :func:`ngp_mi.models.pretrained.load_shape` for a shipped model); module-level, so picklable."""
+        run; :func:`ngp_mi.models.pretrained.load_shape_prior` for a run or a model folder); module-level, so picklable."""
         self.run, self.resolution = str(run), int(resolution)
         self.load = load
         self.meta = {"shape_run": self.run, "resolution": self.resolution}
