@@ -1,3 +1,4 @@
+# make bench: skip (an experiment over trained runs or data given as arguments)
 """Diagnosis: why an exemplar through E_da → G_da comes back as the wrong colours (issue 15).
 
 The conditional-VAE path of the albedo branch alone — E_da(I_da) = (μ, log σ²), z = μ + σ ε,

@@ -1,3 +1,4 @@
+# make bench: skip (an experiment over trained runs or data given as arguments)
 """Benchmark: how much held-out mask IoU a sub-pixel error costs (issue 17's IoU ≥ 0.97 goal).
 
 For the held-out views of each procedural shape of a ``render-dataset`` folder (the last

@@ -1,3 +1,4 @@
+# make bench: skip (an experiment over trained runs or data given as arguments)
 """Experiment: map-network recipes at an equal budget (issue 15) — one table, one row per arm.
 
 Each arm trains ``train/maps_cpu.toml`` cut to ``--iterations`` map steps and ``--specular`` G_sp^real
@@ -93,6 +94,15 @@ def run_arm(name: str, overrides: list[str], args: argparse.Namespace, out: Path
     return result
 
 
+def score_reconstructions(result: dict, folder: Path, held_out: str, coarse_data: str) -> dict:
+    """``result`` with G_n scored on ``coarse_data`` (the held-out shapes as a shape prior reconstructs
+    them: ``render-dataset --coarse-shapes``) as ``maps_recon``, computed once per folder."""
+    if result.get("maps_recon", {}).get("coarse") != coarse_data:
+        result["maps_recon"] = evaluate_maps(folder / "run", held_out, folder / "eval-recon", coarse_data=coarse_data)
+        write_json(folder / "result.json", result)
+    return result
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--held-out", required=True, help="a render-dataset folder of held-out shapes")
@@ -106,12 +116,17 @@ def main() -> None:
                                             "(arms then differ in the G_sp^real stage only)")
     parser.add_argument("--compare-set", type=int, nargs=2, default=(10, 4), metavar=("SHAPES", "VIEWS"),
                         help="held-out shapes × views that compare scores the images on (default 10 × 4)")
+    parser.add_argument("--coarse-data", help="also score G_n on these coarse depths of --held-out's shapes and views "
+                                              "(render-dataset --coarse-shapes: a shape prior's reconstructions)")
     args = parser.parse_args()
     out = Path(args.out)
     results = []
     for arm in args.arm:
         name, _, overrides = arm.partition("=")
         result = run_arm(name, [o for o in overrides.split(",") if o], args, out)
+        if args.coarse_data:
+            result = score_reconstructions(result, out / name.replace(" ", "_").replace("/", "-"), args.held_out,
+                                           args.coarse_data)
         (out / "results.json").parent.mkdir(parents=True, exist_ok=True)
         results.append(result)
         (out / "results.json").write_text(json.dumps(results, indent=2))
@@ -120,16 +135,20 @@ def main() -> None:
           f"steps, seed {args.seed}; held-out {args.held_out}; images: compare on "
           f"{args.compare_set[0]} × {args.compare_set[1]} of them\n")
     print("| arm | diversity ratio | spread over z_da | exemplar L1 (single colour) | G_n / own normals ° (σ 2 px) "
-          "| w/o G_sp PSNR / FLIP | NGP PSNR / FLIP | G_sp^real's light: precision / recall | train min |\n"
-          "|---|---|---|---|---|---|---|---|---|")
+          "| G_n / own normals ° mean (median) on reconstructions | w/o G_sp PSNR / FLIP | NGP PSNR / FLIP "
+          "| G_sp^real's light: precision / recall | train min |\n"
+          "|---|---|---|---|---|---|---|---|---|---|")
     for r in results:
         m, n = r["maps"], r["maps"]["normal_error_deg"]
         image = {k: f"{v['psnr']:.2f} / {v['flip']:.3f}" for k, v in r["images"].items()}
         place = r.get("specular_placement")
         placement = f"{place['precision']:.2f} / {place['recall']:.2f}" if place else "–"
+        r_n = r.get("maps_recon", {}).get("normal_error_deg")
+        recon = (f"{r_n['G_n']['mean']:.1f} ({r_n['G_n']['median']:.1f}) / {r_n['from_coarse_depth']['mean']:.1f} "
+                 f"({r_n['from_coarse_depth']['median']:.1f})") if r_n else "–"
         print(f"| {r['arm']} | {m['appearance_diversity_ratio']:.3f} | {m['albedo_diversity_l1']:.4f} | "
               f"{m['albedo_reconstruction_l1']:.3f} ({m['albedo_single_colour_l1']:.3f}) | "
-              f"{n['G_n']['mean']:.1f} / {n['from_coarse_depth']['mean']:.1f} | {image.get('without G_sp', '–')} | "
+              f"{n['G_n']['mean']:.1f} / {n['from_coarse_depth']['mean']:.1f} | {recon} | {image.get('without G_sp', '–')} | "
               f"{image.get('NGP', '–')} | {placement} | {r['train_minutes']:.1f} |")
 
 

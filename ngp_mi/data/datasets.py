@@ -6,6 +6,8 @@ NOC in [0, 1]) as float32 CHW tensors; scaling to [−1, 1] happens at the netwo
 * :class:`ReflectanceMapDataset` — the "real" reflectance maps (depth, normal, albedo, NOC, mask)
   and the camera of each view of a ``render-dataset`` folder.
 * :class:`DepthDataset` — depth (+ mask) and camera only: the shapes to be decorated.
+* :class:`WithCoarseDepth` — a dataset's views with the same shape's coarse depth of the same view
+  (a ``render-dataset --coarse-shapes`` folder): ``coarse_depth`` and ``coarse_mask``.
 * :class:`ImageFolderDataset` — the "real image" domain: the path-traced images of a dataset
   folder or a folder of photographs (PNG / JPEG / EXR), resized and randomly flipped as in the paper.
 """
@@ -63,6 +65,38 @@ class DepthDataset(ReflectanceMapDataset):
 
     def __init__(self, root: str | Path):
         super().__init__(root, channels=("depth", "mask"))
+
+
+class WithCoarseDepth(Dataset):
+    """The views of ``dataset`` with ``coarse_depth`` / ``coarse_mask``: the same shape and view in
+    ``coarse_root`` (``render-dataset --coarse-shapes`` with the same source, seed, views and
+    resolution), paired by (shape id, view). ``drop_unpaired``: leave out the views the coarse folder
+    lacks (a shape whose reconstruction was empty is skipped there; ``dropped`` counts them) instead
+    of failing on the first one."""
+
+    def __init__(self, dataset: ReflectanceMapDataset, coarse_root: str | Path, drop_unpaired: bool = False):
+        self.dataset, self.coarse = dataset, DepthDataset(coarse_root)
+        coarse_index = {(r["shape_id"], r["view"]): i for i, r in enumerate(self.coarse.records)}
+        self.pairs = []
+        for i, record in enumerate(dataset.records):
+            key = (record["shape_id"], record["view"])
+            if key in coarse_index:
+                self.pairs.append((i, coarse_index[key]))
+            elif not drop_unpaired:
+                raise ValueError(f"{coarse_root}: no coarse view for shape {key[0]!r} view {key[1]} of "
+                                 f"{dataset.root} (render it with the same --source, --seed, --views and --res)")
+        self.dropped = len(dataset) - len(self.pairs)
+        if not self.pairs:
+            raise ValueError(f"{coarse_root}: none of the views of {dataset.root} has a coarse view")
+        self.records = [dataset.records[i] for i, _ in self.pairs]
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        i, j = self.pairs[index]
+        coarse = self.coarse[j]
+        return {**self.dataset[i], "coarse_depth": coarse["depth"], "coarse_mask": coarse["mask"]}
 
 
 def read_image(path: str | Path | BinaryIO, size: int | None = None, linear: bool = False) -> np.ndarray:

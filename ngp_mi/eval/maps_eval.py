@@ -22,7 +22,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from ngp_mi.atomic import write_json, write_text
-from ngp_mi.data.datasets import ReflectanceMapDataset
+from ngp_mi.data.datasets import ReflectanceMapDataset, WithCoarseDepth
 from ngp_mi.models.checkpoint import newest_checkpoint
 from ngp_mi.models.maps import MapsModel, cameras_of, depth_to_net
 from ngp_mi.render.from_depth import normals_from_depth, smooth_depth
@@ -75,21 +75,14 @@ def evaluate_maps(run: str | Path, data: str | Path, out: str | Path, coarse_sig
     out.mkdir(parents=True, exist_ok=True)
     errors_gn, errors_depth, fidelity, flat, diversity, overlap = [], [], [], [], [], []
     sample_colours, real_colours = [], []
-    coarse_set = ReflectanceMapDataset(coarse_data, channels=("depth", "mask")) if coarse_data else None
-    coarse_index = {(r["shape_id"], r["view"]): i for i, r in enumerate(coarse_set.records)} if coarse_set else {}
+    views = ReflectanceMapDataset(data)
     sheet = None
-    for batch in DataLoader(ReflectanceMapDataset(data), batch_size=batch_size):
+    for batch in DataLoader(WithCoarseDepth(views, coarse_data) if coarse_data else views, batch_size=batch_size):
         mask, depth = batch["mask"], batch["depth"]
-        if coarse_set is None:
+        if coarse_data is None:
             coarse, coarse_mask = smooth_depth(depth, mask, coarse_sigma), mask
         else:
-            keys = list(zip(batch["shape_id"], batch["view"].tolist()))
-            missing = [k for k in keys if k not in coarse_index]
-            if missing:
-                raise ValueError(f"{coarse_data}: no coarse view for shape {missing[0][0]!r} view {missing[0][1]} of "
-                                 f"{data} (render it with the same --source, --seed, --views and --res)")
-            items = [coarse_set[coarse_index[k]] for k in keys]
-            coarse, coarse_mask = torch.stack([i["depth"] for i in items]), torch.stack([i["mask"] for i in items])
+            coarse, coarse_mask = batch["coarse_depth"], batch["coarse_mask"]
         both = mask * coarse_mask
         overlap.append(both.sum() / mask.sum().clamp_min(1))
         cameras = cameras_of(batch)

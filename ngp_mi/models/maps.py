@@ -34,6 +34,7 @@ from ngp_mi.render.from_depth import noc_from_depth_batch, normals_from_depth, s
 from ngp_mi.render.shading import DEFAULT, CameraLights, Constants, shade
 
 DEPTH_CENTER, DEPTH_SCALE, MASK_THRESHOLD = 2.0, 0.6, -0.97
+NORMAL_CYCLE_DEPTHS = ("generated", "real", "coarse")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,6 +78,13 @@ class MapsConfig:
     # image): the cycle's L1 against the real normals then asks G_n to restore what a coarse depth
     # lacks — a correctness signal, where depth_blur only adds adversarial pressure. 0: off.
     normal_cycle_blur: float = 0.0
+    # The depth G_n reads inside the normal cycle, whose L1 compares its normals with the real ones:
+    # "generated" (the paper's: G_depth's depth of the real maps' diffuse image), "real" (the real
+    # maps' own depth) or "coarse" (the coarse reconstruction of the real maps' own shape, same view:
+    # [data] coarse_shapes). "real" and "coarse" pair G_n's input with the normals of the same shape:
+    # supervision the paper's unpaired setting does not use, which any dataset rendered from 3-D
+    # models has. See :meth:`MapsModel.normal_cycle_input`.
+    normal_cycle_depth: str = "generated"
     # G_da's output: "image" (the paper's: a ResNet generator's tanh image) or "palette" (a soft
     # partition into ``albedo_parts`` regions, one colour of z_da each; the colours bypass the instance
     # norms that remove absolute colour). See :class:`ngp_mi.nets.networks.PaletteGenerator`.
@@ -102,6 +110,8 @@ class MapsConfig:
                              f"{self.palette_background!r}")
         if self.encoder_pool not in ENCODER_POOLS:
             raise ValueError(f"encoder_pool must be one of {ENCODER_POOLS}, got {self.encoder_pool!r}")
+        if self.normal_cycle_depth not in NORMAL_CYCLE_DEPTHS:
+            raise ValueError(f"normal_cycle_depth must be one of {NORMAL_CYCLE_DEPTHS}, got {self.normal_cycle_depth!r}")
         if self.albedo_cycle_noc not in ("generated", "real"):
             raise ValueError(f"albedo_cycle_noc must be 'generated' or 'real', got {self.albedo_cycle_noc!r}")
         if self.k_diff is not None and not 0 <= self.k_diff <= 10:
@@ -257,11 +267,7 @@ class MapsModel(BaseModel):
         diffuse_r_net = 2 * diffuse_r - 1
         depth_g_net = self.G_depth(diffuse_r_net)
         noc_g = self.noc(*net_to_depth(depth_g_net), maps_batch)
-        depth_for_normals = depth_g_net
-        if self.config.normal_cycle_blur > 0:
-            depth_g, mask_g = net_to_depth(depth_g_net)
-            depth_for_normals = depth_to_net(coarsen_depth(depth_g, mask_g, self.config.normal_cycle_blur), mask_g)
-        normal_cycled = self.generate_normals(depth_for_normals, cams_m)
+        normal_cycled = self.generate_normals(self.normal_cycle_input(depth_g_net, maps_batch), cams_m)
         mu, logvar = self.E_da(albedo_r_net, m_m)
         z_encoded = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
         noc_real = self.noc(maps_batch["depth"], m_m, maps_batch)
@@ -290,6 +296,26 @@ class MapsModel(BaseModel):
             "cyc_z": losses.latent_cycle_loss(z_recovered, z),
             "kl": losses.kl_loss(mu, logvar),
         }
+
+    def normal_cycle_input(self, depth_g_net: torch.Tensor, maps_batch: dict[str, Any]) -> torch.Tensor:
+        """The depth (network range) G_n reads in the normal cycle L_n^cyc: G_depth's depth of the real
+        diffuse image ``depth_g_net`` (the paper's), or the real maps' own depth or their shape's
+        coarse reconstruction (``normal_cycle_depth``); blurred by ``normal_cycle_blur``."""
+        source = self.config.normal_cycle_depth
+        if source == "generated":
+            depth, mask = net_to_depth(depth_g_net)
+        elif source == "real":
+            depth, mask = maps_batch["depth"], maps_batch["mask"]
+        else:
+            if "coarse_depth" not in maps_batch:
+                raise ValueError("normal_cycle_depth = 'coarse' needs the real maps' coarse depth: set [data] "
+                                 "coarse_shapes (a `train shape` run or a model) in the recipe")
+            depth, mask = maps_batch["coarse_depth"], maps_batch["coarse_mask"]
+        if self.config.normal_cycle_blur > 0:
+            depth = coarsen_depth(depth, mask, self.config.normal_cycle_blur)
+        elif source == "generated":
+            return depth_g_net  # as generated: the gradient reaches G_depth through it
+        return depth_to_net(depth, mask)
 
     def discriminator_terms(self) -> torch.Tensor:
         pairs = zip((self.D_n, self.D_da, self.D_df, self.D_depth, self.D_noc),

@@ -40,13 +40,12 @@ import torch
 from tqdm import tqdm
 
 from ngp_mi.camera import ViewDistribution
-from ngp_mi.data.datasets import ReflectanceMapDataset
 from ngp_mi.data.views import derived_seed
 from ngp_mi.models.maps import MapsModel
 from ngp_mi.models.shape import ShapeModel, occupancy_loss
 from ngp_mi.render.depth import depth_of_hits, project_depth
 from ngp_mi.training import loop
-from ngp_mi.training.maps import MapsData, image_grid, prepare_data
+from ngp_mi.training.maps import MapsData, image_grid, maps_dataset, prepare_data
 from ngp_mi.training.recipe import from_table, out_override, positive, read_tables, record
 from ngp_mi.training.shape import ae_batch, run_shape_data
 from ngp_mi.viz import save_png
@@ -179,14 +178,19 @@ def train_e2e(config_path: str | Path, log=print, out: str | Path | None = None,
     train = recipe.train
     device, rank, world = loop.start_processes(train.device)
     out = Path(train.out)
-    maps_root, _ = prepare_data(dataclasses.replace(recipe.data, coarse_shapes=None), rank)
-    maps_batches = loop.SeededBatches(ReflectanceMapDataset(maps_root), train.batch_size, train.seed, rank, world)
-
     model = MapsModel.from_run(recipe.init.maps_run, device)
     shape = ShapeModel.from_run(recipe.init.shape_run, device)
     for run, loaded in ((recipe.init.maps_run, model), (recipe.init.shape_run, shape)):
         if loaded is None:
             raise ValueError(f"[init] {run}: no readable checkpoint (train it first)")
+    # G_shape's own shapes are the depth to decorate; coarse reconstructions only pair the real maps
+    # for a G_n trained with normal_cycle_depth = "coarse".
+    data = recipe.data if model.config.normal_cycle_depth == "coarse" else dataclasses.replace(recipe.data,
+                                                                                               coarse_shapes=None)
+    maps_root, coarse_root = prepare_data(data, rank)
+    maps_batches = loop.SeededBatches(maps_dataset(model.config, data, maps_root, coarse_root,
+                                                   log if rank == 0 else None),
+                                      train.batch_size, train.seed, rank, world)
     model.train()
     for network in (shape.encoder, shape.G_latent, shape.D_latent):
         network.requires_grad_(False)

@@ -5,7 +5,8 @@ The recipe (TOML; :mod:`ngp_mi.training.recipe`) has these tables:
 * ``[data]`` (:class:`MapsData`) — ``maps`` and ``depth``: ``render-dataset`` folders of real
   reflectance maps and of the depth maps to decorate; when absent, a dataset of ``source``
   (``num_shapes`` × ``views`` at ``resolution``) is rendered into ``cache_dir`` first (and reused).
-  With ``coarse_shapes`` (a ``train shape`` run), the depth maps are those of the same shapes
+  With ``coarse_shapes`` (a ``train shape`` run, or a model folder or shipped name whose prior has its
+  encoder), the depth maps are those of the same shapes
   reconstructed by its autoencoder (``<cache_dir>-coarse``, marching cubes at
   ``coarse_resolution``): coarse shapes, as NGP decorates.
 * ``[model]`` — fields of :class:`~ngp_mi.models.maps.MapsConfig`.
@@ -36,7 +37,7 @@ import json
 import shutil
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -45,8 +46,9 @@ from tqdm import tqdm
 
 from ngp_mi.atomic import atomic_path, write_text
 
-from ngp_mi.data.datasets import DepthDataset, ImageFolderDataset, ReflectanceMapDataset
+from ngp_mi.data.datasets import DepthDataset, ImageFolderDataset, ReflectanceMapDataset, WithCoarseDepth
 from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
+from ngp_mi.models import pretrained
 from ngp_mi.models.maps import MapsConfig, MapsModel
 from ngp_mi.models.shape import CoarseShapes
 from ngp_mi.models.specular import SpecularConfig, SpecularModel
@@ -67,7 +69,8 @@ class MapsData:
     cache_dir: str = "outputs/data/maps"
     maps: str | None = None    # a render-dataset folder of reflectance maps (with ``depth``: no rendering)
     depth: str | None = None   # a render-dataset folder of the depth maps to decorate
-    coarse_shapes: str | None = None  # a `train shape` run: decorate its autoencoder's coarse shapes
+    coarse_shapes: str | None = None  # a `train shape` run or a model folder / shipped name (with an encoder):
+                                      # decorate its autoencoder's coarse shapes
     coarse_resolution: int = 64
 
     def __post_init__(self) -> None:
@@ -133,15 +136,34 @@ def prepare_data(data: MapsData, rank: int) -> tuple[Path, Path]:
                                seed=data.seed)
         render_dataset(config, cache, progress=False)
         if data.coarse_shapes:  # the paper decorates G_shape's coarse shapes, not the detailed ones
-            if not Path(data.coarse_shapes).is_dir():
-                raise ValueError(f"[data] coarse_shapes = {data.coarse_shapes!r}: no such `train shape` run "
-                                 "(train it first: ngp-mi train shape --config train/shape_cpu.toml)")
+            try:
+                pretrained.load_shape_prior(data.coarse_shapes).require_encoder()
+            except (ValueError, FileNotFoundError) as error:
+                raise ValueError(f"[data] coarse_shapes = {data.coarse_shapes!r}: {error}") from error
             coarse = dataclasses.replace(config, channels=("depth", "mask"), coarse_shapes=data.coarse_shapes,
                                          coarse_resolution=data.coarse_resolution)
             render_dataset(coarse, depth_cache, progress=False,
-                           reconstruct=CoarseShapes(data.coarse_shapes, data.coarse_resolution))
+                           reconstruct=CoarseShapes(data.coarse_shapes, data.coarse_resolution,
+                                                    load=pretrained.load_shape_prior))
     loop.barrier()
     return cache, depth_cache
+
+
+def maps_dataset(model: MapsConfig, data: MapsData, maps_root: Path, depth_root: Path,
+                 log: Callable[[str], None] | None = None) -> ReflectanceMapDataset | WithCoarseDepth:
+    """The real maps; with ``normal_cycle_depth = "coarse"``, each view with its shape's coarse depth
+    (the ``[data] coarse_shapes`` folder; views of a shape without a reconstruction are left out)."""
+    maps = ReflectanceMapDataset(maps_root)
+    if model.normal_cycle_depth != "coarse":
+        return maps
+    if data.coarse_shapes is None:
+        raise ValueError("[model] normal_cycle_depth = 'coarse' reads the real maps' coarse reconstructions: "
+                         "set [data] coarse_shapes (a `train shape` run or a model such as \"chair\")")
+    paired = WithCoarseDepth(maps, depth_root, drop_unpaired=True)
+    if paired.dropped and log is not None:
+        log(f"train maps: {paired.dropped} of {len(maps)} real views have no coarse view in {depth_root} "
+            "(empty reconstruction) and are left out")
+    return paired
 
 
 def prepare_real_images(data: MapsData, stage: SpecularStage, rank: int) -> Path:
@@ -210,7 +232,8 @@ def train_maps(config_path: str | Path, log=print, out: str | Path | None = None
             seed_from_maps_run(maps_from, out, train.iterations)
         loop.barrier()
     maps_root, depth_root = prepare_data(recipe.data, rank)
-    maps_batches = loop.SeededBatches(ReflectanceMapDataset(maps_root), train.batch_size, train.seed, rank, world)
+    maps_batches = loop.SeededBatches(maps_dataset(recipe.model, recipe.data, maps_root, depth_root, log if rank == 0 else None),
+                                      train.batch_size, train.seed, rank, world)
     depth_batches = loop.SeededBatches(DepthDataset(depth_root), train.batch_size, train.seed + 10 ** 6, rank, world)
 
     torch.manual_seed(train.seed)  # identical initial weights on every rank

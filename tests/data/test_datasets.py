@@ -53,3 +53,23 @@ def test_image_folder_from_dataset_and_photos_with_flips(dataset, tmp_path):
     (photos / "c.png").write_bytes(b"not an image")
     with pytest.raises(ValueError, match="c.png: unreadable image"):
         ImageFolderDataset(photos)[2]
+
+
+def test_views_with_their_coarse_depth(dataset, tmp_path):
+    """WithCoarseDepth pairs views by (shape id, view): a folder of fewer views fails naming the first
+    missing one, or, with drop_unpaired, leaves those views out and counts them."""
+    from ngp_mi.data.datasets import WithCoarseDepth
+
+    fewer = tmp_path / "fewer"  # the same two chairs, two of their three views
+    render_dataset(DatasetConfig(source="chair", num_shapes=2, views=2, resolution=24, channels=("depth", "mask")),
+                   fewer, progress=False)
+    views = ReflectanceMapDataset(dataset)
+    with pytest.raises(ValueError, match=r"no coarse view for shape 'chair/00000\d' view 2"):
+        WithCoarseDepth(views, fewer)
+    paired = WithCoarseDepth(views, fewer, drop_unpaired=True)
+    assert len(paired) == 4 and paired.dropped == 2
+    item, record = paired[3], paired.records[3]
+    coarse = DepthDataset(fewer)
+    twin = next(i for i, r in enumerate(coarse.records) if (r["shape_id"], r["view"]) == (record["shape_id"], record["view"]))
+    assert torch.equal(item["coarse_depth"], coarse[twin]["depth"]) and item["shape_id"] == record["shape_id"]
+    assert item["normal"].shape == (3, 24, 24)

@@ -122,6 +122,31 @@ def test_normal_cycle_blur_trains_g_n_on_a_blurred_reconstruction_with_gradient_
         dataclasses.replace(TINY, normal_cycle_blur=9.0)
 
 
+@pytest.mark.parametrize("source", ["generated", "real", "coarse"])
+def test_the_normal_cycle_reads_the_depth_the_recipe_names(loaders, source):
+    """L_n^cyc's G_n reads G_depth's depth (the paper's, with gradient to G_depth), the real maps' own
+    depth, or their coarse depth; one training step stays finite, and "coarse" without coarse depth
+    in the batch is a clear error."""
+    from ngp_mi.models.maps import depth_to_net, smooth_depth
+
+    torch.manual_seed(7)
+    model = MapsModel(dataclasses.replace(TINY, normal_residual=True, normal_cycle_depth=source))
+    depth, maps = next(zip(*loaders))
+    coarse = smooth_depth(maps["depth"], maps["mask"], 2.0)  # any other depth of the same views
+    maps = {**maps, "coarse_depth": coarse, "coarse_mask": maps["mask"]}
+    generated = torch.rand_like(maps["depth"]) * 2 - 1
+    expected = {"generated": generated, "real": depth_to_net(maps["depth"], maps["mask"]),
+                "coarse": depth_to_net(coarse, maps["mask"])}[source]
+    assert torch.equal(model.normal_cycle_input(generated, maps), expected)
+    assert all(math.isfinite(v) for v in model.optimize(depth, maps).values())
+    if source == "coarse":
+        without = {k: v for k, v in maps.items() if not k.startswith("coarse_")}
+        with pytest.raises(ValueError, match=r"needs the real maps' coarse depth: set \[data\] coarse_shapes"):
+            model.normal_cycle_input(generated, without)
+    with pytest.raises(ValueError, match="normal_cycle_depth must be one of"):
+        dataclasses.replace(TINY, normal_cycle_depth="blurred")
+
+
 def test_palette_albedo_and_masked_encoder_train_and_read_the_object_masks(loaders):
     """The switches of issue 15's exemplar experiment: G_da as part regions × code colours, E_da
     pooled over the object; E_da receives each domain's mask (a generated albedo's background is

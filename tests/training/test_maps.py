@@ -105,3 +105,42 @@ def test_maps_from_trains_the_specular_stage_alone_on_another_runs_map_networks(
     with pytest.raises(ValueError, match="no checkpoint at step 4"):
         train_maps(maps_recipe(tmp_path, "source", iterations=4, device='"cpu"'), log=lambda *_: None,
                    out=tmp_path / "other", maps_from=source)
+
+
+def test_coarse_shapes_from_a_model_folder(tmp_path):
+    """[data] coarse_shapes takes a shipped model's name as render-dataset --coarse-shapes does: the
+    depth folder holds its reconstructions (same ids, other depth); a folder without an encoder, or
+    a name that is neither, fails naming the field before anything is rendered."""
+    from helpers import without_encoder
+
+    from ngp_mi.data.datasets import ReflectanceMapDataset
+    from ngp_mi.models.pretrained import resolve
+    from ngp_mi.training.maps import MapsData, prepare_data
+
+    data = MapsData(num_shapes=1, views=1, resolution=32, cache_dir=str(tmp_path / "maps"), coarse_shapes="chair",
+                    coarse_resolution=32)
+    maps, depth = prepare_data(data, rank=0)
+    assert depth == Path(f"{tmp_path / 'maps'}-coarse")
+    detailed, coarse = ReflectanceMapDataset(maps)[0], ReflectanceMapDataset(depth)[0]
+    assert coarse["mask"].sum() > 0 and not torch.equal(detailed["depth"], coarse["depth"])
+
+    without_encoder(resolve("chair"), tmp_path / "old")
+    for bad, message in ((str(tmp_path / "old"), "without its encoder"), ("no-such-model", "not a shipped model")):
+        cache = tmp_path / f"bad-{len(message)}"
+        with pytest.raises(ValueError, match=rf"\[data\] coarse_shapes = .*{message}"):
+            prepare_data(MapsData(num_shapes=1, views=1, resolution=32, cache_dir=str(cache), coarse_shapes=bad), 0)
+        assert not Path(f"{cache}-coarse").exists()
+
+
+def test_the_normal_cycle_on_the_real_maps_coarse_reconstructions_trains(tmp_path):
+    """[model] normal_cycle_depth = "coarse" pairs each real view with its shape's reconstruction by
+    [data] coarse_shapes and trains; without coarse_shapes it fails naming both fields."""
+    recipe = maps_recipe(tmp_path, "coarse", iterations=2, device='"cpu"')
+    common = ['model.normal_cycle_depth="coarse"', "data.num_shapes=2", "data.views=2"]
+    with pytest.raises(ValueError, match=r"normal_cycle_depth = 'coarse' .* set \[data\] coarse_shapes"):
+        train_maps(recipe, log=lambda *_: None, overrides=common)
+    run = train_maps(recipe, log=lambda *_: None, overrides=[*common, 'data.coarse_shapes="chair"',
+                                                             "data.coarse_resolution=32"])
+    maps_steps = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    maps_steps = [s for s in maps_steps if s["stage"] == "maps"]
+    assert [s["step"] for s in maps_steps] == [1, 2] and all(math.isfinite(s["cyc_n"]) for s in maps_steps)
