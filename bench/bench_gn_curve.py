@@ -12,7 +12,8 @@ finite-difference normals of the same depth (NGP w/o G_n), with three depths as 
 
 Each call appends one line per run and checkpoint not yet there to ``--log`` (JSONL), so calls
 during training (checkpoints are pruned to the newest three) build a curve; ``--table`` prints the
-log as Markdown. ``evaluate maps`` reports the same angles for the newest checkpoint with the
+log as Markdown; ``--sheets`` writes ``gn_sheet.png`` beside each run (true normals, the
+reconstruction's own, G_n's on it and on the exact depth, four views). ``evaluate maps`` reports the same angles for the newest checkpoint with the
 albedo figures; this script is G_n only, in seconds per checkpoint.
 
     .venv/bin/python bench/bench_gn_curve.py --held-out outputs/data/held_out_chair \\
@@ -26,6 +27,7 @@ import argparse
 import json
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
@@ -34,6 +36,7 @@ from ngp_mi.eval.maps_eval import angular_error_deg
 from ngp_mi.models.checkpoint import list_checkpoints, load_weights, read_weights
 from ngp_mi.models.maps import MapsModel, cameras_of, depth_to_net
 from ngp_mi.render.from_depth import normals_from_depth, smooth_depth
+from ngp_mi.viz import contact_sheet, save_png
 
 INPUTS = ("recon", "smooth2", "exact")
 
@@ -60,6 +63,24 @@ def normal_errors(model: MapsModel, batches: list[dict]) -> dict:
                    for who, e in by.items()} for name, by in errors.items()}
 
 
+@torch.no_grad()
+def normal_sheet(model: MapsModel, batch: dict, rows: int = 4) -> np.ndarray:
+    """For the batch's first ``rows`` views: the true normals, the reconstruction's own, G_n's on the
+    reconstruction and G_n's on the exact depth (4× nearest-neighbour enlarged)."""
+    cameras = cameras_of(batch)
+    depth, mask = batch["coarse_depth"], batch["coarse_mask"]
+    columns = {"true": batch["normal"], "own (recon)": normals_from_depth(depth, mask, cameras),
+               "G_n (recon)": model.generate_normals(depth_to_net(depth, mask), cameras),
+               "G_n (exact)": model.generate_normals(depth_to_net(batch["depth"], batch["mask"]), cameras)}
+    tiles, labels = [], []
+    for i in range(min(rows, len(batch["depth"]))):
+        for label, normals in columns.items():
+            image = ((normals[i].clamp(-1, 1) + 1) / 2 * 255).round().byte().permute(1, 2, 0).numpy()
+            tiles.append(np.kron(image, np.ones((4, 4, 1), np.uint8)))
+            labels.append(label)
+    return contact_sheet(tiles, labels, columns=len(columns))
+
+
 def table(log: Path) -> str:
     rows = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
     lines = ["| run | step | " + " | ".join(f"{k}: G_n / own (mean, median °)" for k in INPUTS) + " |",
@@ -78,6 +99,8 @@ def main() -> None:
     parser.add_argument("--coarse-data", help="the same shapes and views, render-dataset --coarse-shapes")
     parser.add_argument("--log", required=True, help="JSONL the figures are appended to")
     parser.add_argument("--table", action="store_true", help="print the log as a Markdown table")
+    parser.add_argument("--sheets", action="store_true",
+                        help="write RUN/../gn_sheet.png: true, own and G_n's normals of 4 views (newest checkpoint)")
     args = parser.parse_args()
     log = Path(args.log)
     if args.runs:
@@ -88,6 +111,8 @@ def main() -> None:
         done = {(r["run"], r["step"]) for r in map(json.loads, log.read_text().splitlines())} if log.exists() else set()
         log.parent.mkdir(parents=True, exist_ok=True)
         for run in map(Path, args.runs):
+            if args.sheets:
+                save_png(run.parent / "gn_sheet.png", normal_sheet(MapsModel.from_run(run), batches[0]))
             model = MapsModel.from_run(run)  # the newest checkpoint's config; each one's weights below
             for checkpoint in list_checkpoints(run):
                 step = int(checkpoint.name.split("-")[-1])
