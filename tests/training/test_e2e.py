@@ -153,3 +153,22 @@ def test_two_processes_with_gloo_stay_in_sync(runs, tmp_path):
     assert done.returncode == 0, done.stderr[-2000:]
     records = [json.loads(line) for line in (tmp_path / "ddp" / "log.jsonl").read_text().splitlines()]
     assert records[-1] == {"step": 2, "world": 2, "ranks_in_sync": True}
+
+
+def test_a_maps_run_with_the_coarse_normal_cycle_trains_end_to_end(runs, tmp_path):
+    """A maps run trained with normal_cycle_depth = "coarse" keeps its real maps paired with their
+    reconstructions under train e2e ([data] coarse_shapes); without coarse_shapes it fails by name."""
+    from helpers import maps_recipe
+
+    from ngp_mi.training.maps import train_maps
+
+    coarse = ['model.normal_cycle_depth="coarse"', 'data.coarse_shapes="chair"', "data.coarse_resolution=32"]
+    maps_run = train_maps(maps_recipe(tmp_path, "maps", iterations=2), log=lambda *_: None,
+                          overrides=coarse)
+    recipe = e2e_recipe(tmp_path, (maps_run, runs[1]), "e2e", iterations=2, device='"cpu"')
+    with pytest.raises(ValueError, match=r"normal_cycle_depth = 'coarse' .* set \[data\] coarse_shapes"):
+        train_e2e(recipe, log=lambda *_: None)
+    recipe.write_text(recipe.read_text().replace("\n[data]", '\n[data]\ncoarse_shapes = "chair"\ncoarse_resolution = 32', 1))
+    out = train_e2e(recipe, log=lambda *_: None)
+    steps = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert steps[-1]["step"] == 2 and all(torch.isfinite(torch.tensor(s["cyc_n"])) for s in steps)
