@@ -45,7 +45,7 @@ from ngp_mi.models.maps import MapsModel
 from ngp_mi.models.shape import ShapeModel, occupancy_loss
 from ngp_mi.render.depth import depth_of_hits, project_depth
 from ngp_mi.training import loop
-from ngp_mi.training.maps import MapsData, image_grid, maps_dataset, prepare_data
+from ngp_mi.training.maps import MapsData, image_grid, maps_dataset, prepare_data, require_coarse_pairs
 from ngp_mi.training.recipe import from_table, out_override, positive, read_tables, record
 from ngp_mi.training.shape import ae_batch, run_shape_data
 from ngp_mi.viz import save_png
@@ -187,6 +187,7 @@ def train_e2e(config_path: str | Path, log=print, out: str | Path | None = None,
     # for a G_n trained with normal_cycle_depth = "coarse".
     data = recipe.data if model.config.normal_cycle_depth == "coarse" else dataclasses.replace(recipe.data,
                                                                                                coarse_shapes=None)
+    require_coarse_pairs(model.config, data)  # before any rendering
     maps_root, coarse_root = prepare_data(data, rank)
     maps_batches = loop.SeededBatches(maps_dataset(model.config, data, maps_root, coarse_root,
                                                    log if rank == 0 else None),

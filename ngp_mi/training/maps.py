@@ -115,6 +115,9 @@ class MapsRecipe:
     specular: SpecularConfig | None
     tables: dict[str, Any]  # as read, overrides applied: stored in checkpoints and recipe.json
 
+    def __post_init__(self) -> None:
+        require_coarse_pairs(self.model, self.data)  # before any rendering
+
     @classmethod
     def read(cls, path: str | Path, overrides: Sequence[str] = ()) -> "MapsRecipe":
         tables = read_tables(path, overrides, required=("data", "model", "train"), known=TABLES)
@@ -149,6 +152,13 @@ def prepare_data(data: MapsData, rank: int) -> tuple[Path, Path]:
     return cache, depth_cache
 
 
+def require_coarse_pairs(model: MapsConfig, data: MapsData) -> None:
+    """``normal_cycle_depth = "coarse"`` needs the real maps' reconstructions: ``[data] coarse_shapes``."""
+    if model.normal_cycle_depth == "coarse" and data.coarse_shapes is None:
+        raise ValueError("[model] normal_cycle_depth = 'coarse' reads the real maps' coarse reconstructions: "
+                         "set [data] coarse_shapes (a `train shape` run or a model such as \"chair\")")
+
+
 def maps_dataset(model: MapsConfig, data: MapsData, maps_root: Path, depth_root: Path,
                  log: Callable[[str], None] | None = None) -> ReflectanceMapDataset | WithCoarseDepth:
     """The real maps; with ``normal_cycle_depth = "coarse"``, each view with its shape's coarse depth
@@ -156,9 +166,7 @@ def maps_dataset(model: MapsConfig, data: MapsData, maps_root: Path, depth_root:
     maps = ReflectanceMapDataset(maps_root)
     if model.normal_cycle_depth != "coarse":
         return maps
-    if data.coarse_shapes is None:
-        raise ValueError("[model] normal_cycle_depth = 'coarse' reads the real maps' coarse reconstructions: "
-                         "set [data] coarse_shapes (a `train shape` run or a model such as \"chair\")")
+    require_coarse_pairs(model, data)
     paired = WithCoarseDepth(maps, depth_root, drop_unpaired=True)
     if paired.dropped and log is not None:
         log(f"train maps: {paired.dropped} of {len(maps)} real views have no coarse view in {depth_root} "
