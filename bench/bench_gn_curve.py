@@ -13,8 +13,9 @@ finite-difference normals of the same depth (NGP w/o G_n), with three depths as 
 Each call appends one line per run and checkpoint not yet there to ``--log`` (JSONL), so calls
 during training (checkpoints are pruned to the newest three) build a curve; ``--table`` prints the
 log as Markdown; ``--sheets`` writes ``gn_sheet.png`` beside each run (true normals, the
-reconstruction's own, G_n's on it and on the exact depth, four views). ``evaluate maps`` reports the same angles for the newest checkpoint with the
-albedo figures; this script is G_n only, in seconds per checkpoint.
+reconstruction's own, G_n's on it and on the exact depth, four views). ``evaluate maps`` reports
+the same angles for the newest checkpoint with the albedo figures; this script is G_n only, in
+seconds per checkpoint.
 
     .venv/bin/python bench/bench_gn_curve.py --held-out outputs/data/held_out_chair \\
         --coarse-data outputs/data/held_out_chair_coarse_enc --log outputs/bench/gn_curve.jsonl RUN [RUN …]
@@ -36,7 +37,7 @@ from ngp_mi.eval.maps_eval import angular_error_deg
 from ngp_mi.models.checkpoint import list_checkpoints, load_weights, read_weights
 from ngp_mi.models.maps import MapsModel, cameras_of, depth_to_net
 from ngp_mi.render.from_depth import normals_from_depth, smooth_depth
-from ngp_mi.viz import contact_sheet, save_png
+from ngp_mi.viz import chw_to_uint8, contact_sheet, save_png
 
 INPUTS = ("recon", "smooth2", "exact")
 
@@ -58,7 +59,8 @@ def normal_errors(model: MapsModel, batches: list[dict]) -> dict:
             both = batch["mask"] * mask
             errors[name]["G_n"].append(angular_error_deg(model.generate_normals(depth_to_net(depth, mask), cameras),
                                                          batch["normal"], both))
-            errors[name]["own"].append(angular_error_deg(normals_from_depth(depth, mask, cameras), batch["normal"], both))
+            own = normals_from_depth(depth, mask, cameras)
+            errors[name]["own"].append(angular_error_deg(own, batch["normal"], both))
     return {name: {who: [round(torch.cat(e).mean().item(), 2), round(torch.cat(e).median().item(), 2)]
                    for who, e in by.items()} for name, by in errors.items()}
 
@@ -75,7 +77,7 @@ def normal_sheet(model: MapsModel, batch: dict, rows: int = 4) -> np.ndarray:
     tiles, labels = [], []
     for i in range(min(rows, len(batch["depth"]))):
         for label, normals in columns.items():
-            image = ((normals[i].clamp(-1, 1) + 1) / 2 * 255).round().byte().permute(1, 2, 0).numpy()
+            image = chw_to_uint8((normals[i] + 1) / 2, srgb=False)
             tiles.append(np.kron(image, np.ones((4, 4, 1), np.uint8)))
             labels.append(label)
     return contact_sheet(tiles, labels, columns=len(columns))
@@ -111,9 +113,9 @@ def main() -> None:
         done = {(r["run"], r["step"]) for r in map(json.loads, log.read_text().splitlines())} if log.exists() else set()
         log.parent.mkdir(parents=True, exist_ok=True)
         for run in map(Path, args.runs):
+            model = MapsModel.from_run(run)  # the newest checkpoint; each one's weights below
             if args.sheets:
-                save_png(run.parent / "gn_sheet.png", normal_sheet(MapsModel.from_run(run), batches[0]))
-            model = MapsModel.from_run(run)  # the newest checkpoint's config; each one's weights below
+                save_png(run.parent / "gn_sheet.png", normal_sheet(model, batches[0]))
             for checkpoint in list_checkpoints(run):
                 step = int(checkpoint.name.split("-")[-1])
                 if (str(run), step) in done:

@@ -148,8 +148,9 @@ def main() -> None:
                  f"({r_n['from_coarse_depth']['median']:.1f})") if r_n else "–"
         print(f"| {r['arm']} | {m['appearance_diversity_ratio']:.3f} | {m['albedo_diversity_l1']:.4f} | "
               f"{m['albedo_reconstruction_l1']:.3f} ({m['albedo_single_colour_l1']:.3f}) | "
-              f"{n['G_n']['mean']:.1f} / {n['from_coarse_depth']['mean']:.1f} | {recon} | {image.get('without G_sp', '–')} | "
-              f"{image.get('NGP', '–')} | {placement} | {r['train_minutes']:.1f} |")
+              f"{n['G_n']['mean']:.1f} / {n['from_coarse_depth']['mean']:.1f} | {recon} | "
+              f"{image.get('without G_sp', '–')} | {image.get('NGP', '–')} | {placement} | "
+              f"{r['train_minutes']:.1f} |")
 
 
 if __name__ == "__main__":

@@ -176,11 +176,8 @@ def render_dataset(args: argparse.Namespace) -> int:
     reconstruct = None
     if args.coarse_shapes:
         from ngp_mi.models import pretrained  # imports torch (~3 s): only coarse shapes need it
-        from ngp_mi.models.shape import CoarseShapes
 
-        # a `train shape` run, a model folder or a shipped name, checked here, not per shape
-        pretrained.load_shape_prior(args.coarse_shapes).require_encoder()
-        reconstruct = CoarseShapes(args.coarse_shapes, args.coarse_resolution, load=pretrained.load_shape_prior)
+        reconstruct = pretrained.coarse_shapes(args.coarse_shapes, args.coarse_resolution)
     summary = render_dataset(config, args.out, shard=parse_shard(args.shard), strict=args.strict,
                              progress=not args.quiet, workers=args.workers or default_workers(),
                              reconstruct=reconstruct)

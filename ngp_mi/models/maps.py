@@ -111,7 +111,8 @@ class MapsConfig:
         if self.encoder_pool not in ENCODER_POOLS:
             raise ValueError(f"encoder_pool must be one of {ENCODER_POOLS}, got {self.encoder_pool!r}")
         if self.normal_cycle_depth not in NORMAL_CYCLE_DEPTHS:
-            raise ValueError(f"normal_cycle_depth must be one of {NORMAL_CYCLE_DEPTHS}, got {self.normal_cycle_depth!r}")
+            raise ValueError(f"normal_cycle_depth must be one of {NORMAL_CYCLE_DEPTHS}, "
+                             f"got {self.normal_cycle_depth!r}")
         if self.albedo_cycle_noc not in ("generated", "real"):
             raise ValueError(f"albedo_cycle_noc must be 'generated' or 'real', got {self.albedo_cycle_noc!r}")
         if self.k_diff is not None and not 0 <= self.k_diff <= 10:

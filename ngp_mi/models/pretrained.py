@@ -27,7 +27,7 @@ from ngp_mi.atomic import atomic_path, write_json
 from ngp_mi.models.base import config_from_dict
 from ngp_mi.models.checkpoint import load_weights, module_tensors, newest_readable
 from ngp_mi.models.maps import MapsConfig, MapsModel
-from ngp_mi.models.shape import ShapeConfig, ShapeModel
+from ngp_mi.models.shape import CoarseShapes, ShapeConfig, ShapeModel
 from ngp_mi.models.specular import SpecularConfig, SpecularModel
 
 PRETRAINED_ROOT = Path(__file__).resolve().parents[1] / "pretrained"
@@ -207,6 +207,14 @@ def load_shape_prior(run_or_model: str | Path) -> ShapeModel:
             raise ValueError(f"{run_or_model}: no `train shape` checkpoint yet")
         return model
     return load_shape(run_or_model)
+
+
+def coarse_shapes(run_or_model: str | Path, resolution: int) -> CoarseShapes:
+    """The ``reconstruct`` of ``render-dataset --coarse-shapes`` and ``[data] coarse_shapes``: a
+    ``train shape`` run's or a model's G_shape, checked here for its encoder (not per shape, in the
+    workers that load it again)."""
+    load_shape_prior(run_or_model).require_encoder()
+    return CoarseShapes(run_or_model, resolution, load=load_shape_prior)
 
 
 def load_shape(name_or_path: str | Path) -> ShapeModel:

@@ -50,7 +50,6 @@ from ngp_mi.data.datasets import DepthDataset, ImageFolderDataset, ReflectanceMa
 from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
 from ngp_mi.models import pretrained
 from ngp_mi.models.maps import MapsConfig, MapsModel
-from ngp_mi.models.shape import CoarseShapes
 from ngp_mi.models.specular import SpecularConfig, SpecularModel
 from ngp_mi.training import loop
 from ngp_mi.training.recipe import from_table, out_override, positive, read_tables, record
@@ -140,14 +139,12 @@ def prepare_data(data: MapsData, rank: int) -> tuple[Path, Path]:
         render_dataset(config, cache, progress=False)
         if data.coarse_shapes:  # the paper decorates G_shape's coarse shapes, not the detailed ones
             try:
-                pretrained.load_shape_prior(data.coarse_shapes).require_encoder()
+                reconstruct = pretrained.coarse_shapes(data.coarse_shapes, data.coarse_resolution)
             except (ValueError, FileNotFoundError) as error:
                 raise ValueError(f"[data] coarse_shapes = {data.coarse_shapes!r}: {error}") from error
             coarse = dataclasses.replace(config, channels=("depth", "mask"), coarse_shapes=data.coarse_shapes,
                                          coarse_resolution=data.coarse_resolution)
-            render_dataset(coarse, depth_cache, progress=False,
-                           reconstruct=CoarseShapes(data.coarse_shapes, data.coarse_resolution,
-                                                    load=pretrained.load_shape_prior))
+            render_dataset(coarse, depth_cache, progress=False, reconstruct=reconstruct)
     loop.barrier()
     return cache, depth_cache
 
@@ -240,8 +237,8 @@ def train_maps(config_path: str | Path, log=print, out: str | Path | None = None
             seed_from_maps_run(maps_from, out, train.iterations)
         loop.barrier()
     maps_root, depth_root = prepare_data(recipe.data, rank)
-    maps_batches = loop.SeededBatches(maps_dataset(recipe.model, recipe.data, maps_root, depth_root, log if rank == 0 else None),
-                                      train.batch_size, train.seed, rank, world)
+    maps = maps_dataset(recipe.model, recipe.data, maps_root, depth_root, log if rank == 0 else None)
+    maps_batches = loop.SeededBatches(maps, train.batch_size, train.seed, rank, world)
     depth_batches = loop.SeededBatches(DepthDataset(depth_root), train.batch_size, train.seed + 10 ** 6, rank, world)
 
     torch.manual_seed(train.seed)  # identical initial weights on every rank
