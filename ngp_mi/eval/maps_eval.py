@@ -26,7 +26,7 @@ from ngp_mi.data.datasets import ReflectanceMapDataset, WithCoarseDepth
 from ngp_mi.models.checkpoint import newest_checkpoint
 from ngp_mi.models.maps import MapsModel, cameras_of, depth_to_net
 from ngp_mi.render.from_depth import normals_from_depth, smooth_depth
-from ngp_mi.viz import contact_sheet, save_png
+from ngp_mi.viz import chw_to_uint8, contact_sheet, save_png
 
 
 def angular_error_deg(predicted: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -105,7 +105,7 @@ def evaluate_maps(run: str | Path, data: str | Path, out: str | Path, coarse_sig
         if sheet is None:
             tiles = [batch["normal"][0], normal_depth[0], normal_gn[0], batch["albedo"][0] * 2 - 1,
                      reconstruction[0] * 2 - 1, samples[0][0] * 2 - 1, samples[-1][0] * 2 - 1]
-            images = [((t.clamp(-1, 1) + 1) / 2 * 255).round().byte().permute(1, 2, 0).numpy() for t in tiles]
+            images = [chw_to_uint8((t + 1) / 2, srgb=False) for t in tiles]
             sheet = contact_sheet(images, ["N gt", "N from coarse d", "G_n(coarse d)", "albedo gt", "E_da->G_da",
                                            "z sample", "z sample"], columns=len(images))
     gn, from_depth = torch.cat(errors_gn), torch.cat(errors_depth)

@@ -101,10 +101,11 @@ def kl_loss(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
 def total_2d_loss(terms: dict[str, torch.Tensor], lambdas: dict[str, float] = LAMBDAS) -> torch.Tensor:
     """L_2D (App. B, Eq. 2D_modelling_loss): the five GAN terms plus the weighted cycle and KL terms.
 
-    ``terms`` keys: ``gan_n, gan_da, gan_df, gan_depth, gan_noc`` (weight 1) and
-    ``cyc_n, cyc_da, cyc_df, cyc_depth, cyc_noc, cyc_z, kl`` (weights ``lambdas``).
+    ``terms`` keys: ``gan_n, gan_da, gan_df, gan_depth, gan_noc`` (weight 1; ``lambdas["gan_n"]``, when
+    given, weights L_n^GAN: ours, not the paper's) and ``cyc_n, cyc_da, cyc_df, cyc_depth, cyc_noc, cyc_z,
+    kl`` (weights ``lambdas``).
     """
-    weights = {"gan_n": 1.0, "gan_da": 1.0, "gan_df": 1.0, "gan_depth": 1.0, "gan_noc": 1.0,
+    weights = {"gan_n": lambdas.get("gan_n", 1.0), "gan_da": 1.0, "gan_df": 1.0, "gan_depth": 1.0, "gan_noc": 1.0,
                "cyc_n": lambdas["n"], "cyc_da": lambdas["da"], "cyc_df": lambdas["df"],
                "cyc_depth": lambdas["depth"], "cyc_noc": lambdas["noc"], "cyc_z": lambdas["z"], "kl": lambdas["kl"]}
     missing = set(weights) - set(terms)

@@ -19,6 +19,7 @@ albedo, NOC and diffuse images ``2x − 1``; normals as they are.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from typing import Any
 
@@ -35,6 +36,7 @@ from ngp_mi.render.shading import DEFAULT, CameraLights, Constants, shade
 
 DEPTH_CENTER, DEPTH_SCALE, MASK_THRESHOLD = 2.0, 0.6, -0.97
 NORMAL_CYCLE_DEPTHS = ("generated", "real", "coarse")
+GENERATORS = ("G_n", "G_da", "G_depth", "E_da")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,6 +99,14 @@ class MapsConfig:
     # E_da's pooling: "mean" over the image (BicycleGAN's) or "masked" over the object, so a colour is
     # not scaled by the object's size. See :class:`ngp_mi.nets.networks.ResnetEncoder`.
     encoder_pool: str = "mean"
+    # Inference uses the average of the generators' trained weights, θ̄ ← ema θ̄ + (1 − ema) θ after
+    # each step (Polyak averaging, as G_sp^real's ``ema``; ProGAN, StyleGAN): a GAN generator's
+    # weights oscillate from step to step, and G_n's correction with them. 0: off, the paper's.
+    ema: float = 0.0
+    # L_n^GAN's weight (1 in the paper, as every GAN term). Where the normal cycle pairs G_n's input
+    # with the real normals (normal_cycle_depth "real" / "coarse"), its L1 is supervision, and the
+    # adversarial term only adds the noise of a young discriminator's opinion.
+    lambda_gan_n: float = 1.0
     lambdas: tuple[tuple[str, float], ...] = tuple(losses.LAMBDAS.items())
 
     def __post_init__(self) -> None:
@@ -113,6 +123,10 @@ class MapsConfig:
         if self.normal_cycle_depth not in NORMAL_CYCLE_DEPTHS:
             raise ValueError(f"normal_cycle_depth must be one of {NORMAL_CYCLE_DEPTHS}, "
                              f"got {self.normal_cycle_depth!r}")
+        if not 0 <= self.lambda_gan_n <= 100:
+            raise ValueError(f"lambda_gan_n must lie in [0, 100], got {self.lambda_gan_n!r}")
+        if not 0 <= self.ema < 1:
+            raise ValueError(f"ema must lie in [0, 1), got {self.ema!r}")
         if self.albedo_cycle_noc not in ("generated", "real"):
             raise ValueError(f"albedo_cycle_noc must be 'generated' or 'real', got {self.albedo_cycle_noc!r}")
         if self.k_diff is not None and not 0 <= self.k_diff <= 10:
@@ -183,7 +197,12 @@ class MapsModel(BaseModel):
         self.D_df = define_D(3, c.rf_maps, c.ndf)
         self.D_depth = define_D(1, c.rf_maps, c.ndf)
         self.D_noc = define_D(3, c.rf_maps, c.ndf)
-        generators = [self.G_n, self.G_da, self.G_depth, self.E_da]
+        if c.ema:  # G_n … hold the averages (what inference and export use), G_n_train … the trained weights
+            for name in GENERATORS:
+                setattr(self, f"{name}_train", copy.deepcopy(getattr(self, name)))
+                getattr(self, name).requires_grad_(False)
+            self.network_names = (*type(self).network_names, *(f"{name}_train" for name in GENERATORS))
+        generators = [self.generator(name) for name in GENERATORS]
         self.discriminators = [self.D_n, self.D_da, self.D_df, self.D_depth, self.D_noc]
         betas = (c.beta1, 0.999)
         self.opt_G = torch.optim.Adam([p for m in generators for p in m.parameters()], lr=c.lr, betas=betas)
@@ -193,6 +212,23 @@ class MapsModel(BaseModel):
     @classmethod
     def config_from_recipe(cls, recipe: dict[str, Any]) -> MapsConfig:
         return config_from_dict(MapsConfig, recipe["model"])
+
+    def generator(self, name: str) -> nn.Module:
+        """The generator ``name`` (one of :data:`GENERATORS`) this mode runs: with ``ema``, in training
+        mode the trained copy the optimiser moves, else the average; without, the one network."""
+        return getattr(self, f"{name}_train" if self.config.ema and self.training else name)
+
+    @torch.no_grad()
+    def update_average(self) -> None:
+        """θ̄ ← ema θ̄ + (1 − ema) θ for each generator's weights (buffers copied); nothing without ``ema``."""
+        if not self.config.ema:
+            return
+        for name in GENERATORS:
+            average, trained = getattr(self, name), getattr(self, f"{name}_train")
+            for a, t in zip(average.parameters(), trained.parameters()):
+                a.lerp_(t, 1.0 - self.config.ema)
+            for a, t in zip(average.buffers(), trained.buffers()):
+                a.copy_(t)
 
     # ------------------------------------------------------------------ pieces
     def render_diffuse(self, normal: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor,
@@ -226,7 +262,7 @@ class MapsModel(BaseModel):
         shape's normals and learns the detail, instead of learning the differentiation too.
         ``from_depth``: N_d when the caller has it (of the true depth, where ``depth_net`` was moved
         to the training distance)."""
-        raw = self.G_n(depth_net)
+        raw = self.generator("G_n")(depth_net)
         if not self.config.normal_residual:
             return raw
         depth, mask = net_to_depth(depth_net.detach())
@@ -245,7 +281,8 @@ class MapsModel(BaseModel):
         if cameras is None and self.config.normal_residual:
             cameras = cameras_of(views, depth.shape[-2:])
         normal = self.generate_normals(depth_net, cameras or [])
-        return {"depth": depth_net, "noc": noc, "normal": normal, "albedo": self.G_da(torch.cat([noc, normal], 1), z)}
+        albedo = self.generator("G_da")(torch.cat([noc, normal], 1), z)
+        return {"depth": depth_net, "noc": noc, "normal": normal, "albedo": albedo}
 
     # ------------------------------------------------------------------ one step
     def forward(self, depth_batch: dict[str, Any], maps_batch: dict[str, Any]) -> dict[str, torch.Tensor]:
@@ -258,22 +295,23 @@ class MapsModel(BaseModel):
         d_r_net, noc_r, normal_g, albedo_g_net = top["depth"], top["noc"], top["normal"], top["albedo"]
         diffuse_g = self.render_diffuse(normal_g, (albedo_g_net + 1) / 2, m_d, cams_d)
         diffuse_g_net = 2 * diffuse_g - 1
-        depth_cycled_net = self.G_depth(diffuse_g_net)
+        G_depth, E_da = self.generator("G_depth"), self.generator("E_da")
+        depth_cycled_net = G_depth(diffuse_g_net)
         noc_cycled = self.noc(*net_to_depth(depth_cycled_net), depth_batch)
-        z_recovered, _ = self.E_da(albedo_g_net, m_d)
+        z_recovered, _ = E_da(albedo_g_net, m_d)
 
         normal_r, albedo_r, m_m = maps_batch["normal"], maps_batch["albedo"], maps_batch["mask"]
         albedo_r_net = 2 * albedo_r - 1
         diffuse_r = self.render_diffuse(normal_r, albedo_r, m_m, cams_m).detach()
         diffuse_r_net = 2 * diffuse_r - 1
-        depth_g_net = self.G_depth(diffuse_r_net)
+        depth_g_net = G_depth(diffuse_r_net)
         noc_g = self.noc(*net_to_depth(depth_g_net), maps_batch)
         normal_cycled = self.generate_normals(self.normal_cycle_input(depth_g_net, maps_batch), cams_m)
-        mu, logvar = self.E_da(albedo_r_net, m_m)
+        mu, logvar = E_da(albedo_r_net, m_m)
         z_encoded = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
         noc_real = self.noc(maps_batch["depth"], m_m, maps_batch)
         noc_for_albedo = noc_real if self.config.albedo_cycle_noc == "real" else noc_g
-        albedo_cycled_net = self.G_da(torch.cat([noc_for_albedo, normal_r], 1), z_encoded)
+        albedo_cycled_net = self.generator("G_da")(torch.cat([noc_for_albedo, normal_r], 1), z_encoded)
         diffuse_cycled = self.render_diffuse(normal_cycled, (albedo_cycled_net + 1) / 2, m_m, cams_m)
 
         self._for_d = {"normal": (normal_r, normal_g), "albedo": (albedo_r_net, albedo_g_net),
@@ -328,8 +366,9 @@ class MapsModel(BaseModel):
         for D in self.discriminators:
             D.requires_grad_(False)
         terms = self(depth_batch, maps_batch)
-        loss_G = losses.total_2d_loss(terms, dict(self.config.lambdas))
+        loss_G = losses.total_2d_loss(terms, {**dict(self.config.lambdas), "gan_n": self.config.lambda_gan_n})
         self.optimizer_step(self.opt_G, loss_G)
+        self.update_average()
         for D in self.discriminators:
             D.requires_grad_(True)
         loss_D = self.discriminator_terms()

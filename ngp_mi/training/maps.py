@@ -271,6 +271,8 @@ def train_maps(config_path: str | Path, log=print, out: str | Path | None = None
     while step < iterations:
         loop.reseed(train.seed, step, world, rank)
         depth_batch = loop.to_device(depth_batches(step), device)
+        # the G_sp^real stage reads the map networks as inference does (with [model] ema: the averages)
+        model.train(step < maps_iterations)
         if step < maps_iterations:
             stage, visuals = "maps", model
             losses = model.optimize(depth_batch, loop.to_device(maps_batches(step), device))

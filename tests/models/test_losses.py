@@ -33,3 +33,13 @@ def test_total_loss_uses_the_paper_weights():
     assert total.item() == pytest.approx(5 + 25 * 3 + 10 * 2 + 1 + 0.001)
     with pytest.raises(ValueError, match="missing terms"):
         losses.total_2d_loss({"gan_n": torch.tensor(1.0)})
+
+
+def test_the_normal_gan_weight_scales_l_n_gan_alone():
+    """[model] lambda_gan_n: 0 drops L_n^GAN from L_2D and leaves every other term's weight."""
+    names = ["gan_n", "gan_da", "gan_df", "gan_depth", "gan_noc", "cyc_n", "cyc_da", "cyc_df", "cyc_depth",
+             "cyc_noc", "cyc_z", "kl"]
+    terms = {k: torch.tensor(float(i + 1)) for i, k in enumerate(names)}
+    paper = losses.total_2d_loss(terms)
+    assert losses.total_2d_loss(terms, {**losses.LAMBDAS, "gan_n": 0.0}).item() == pytest.approx(paper.item() - 1.0)
+    assert losses.total_2d_loss(terms, {**losses.LAMBDAS, "gan_n": 0.25}).item() == pytest.approx(paper.item() - 0.75)

@@ -177,3 +177,34 @@ def test_the_palette_background_from_the_mask_and_the_part_encoder_train(loaders
     assert all(math.isfinite(v) for step in history for v in step.values())
     off = depth["mask"].expand_as(model.visuals["albedo_g"]) == 0
     assert (model.visuals["albedo_g"][off] == -1).all()
+
+
+def test_with_ema_the_generators_are_the_moving_averages_of_the_trained_ones(loaders, tmp_path):
+    """[model] ema: the optimiser moves G_n_train …; G_n … follow θ̄ ← ema θ̄ + (1 − ema) θ and are what
+    eval mode (inference, export) runs; a checkpoint keeps both; without ema one network each."""
+    from ngp_mi.models.checkpoint import load_weights
+    from ngp_mi.models.maps import GENERATORS
+
+    torch.manual_seed(3)
+    model = MapsModel(dataclasses.replace(TINY, ema=0.9, normal_residual=True))
+    assert {f"{n}_train" for n in GENERATORS} <= set(model.networks())
+    assert not any(n.endswith("_train") for n in MapsModel(TINY).networks())
+    averages = {n: [p.detach().clone() for p in getattr(model, n).parameters()] for n in GENERATORS}
+    depth, maps = next(zip(*loaders))
+    assert all(math.isfinite(v) for v in model.optimize(depth, maps).values())
+    for name in GENERATORS:
+        trained = list(getattr(model, f"{name}_train").parameters())
+        assert any(not torch.equal(a, b) for a, b in zip(averages[name], trained)), f"{name}_train did not move"
+        for before, after, now in zip(averages[name], getattr(model, name).parameters(), trained):
+            assert torch.allclose(after, 0.9 * before + 0.1 * now, atol=1e-6) and not after.requires_grad
+    depth_net = torch.rand(1, 1, 32, 32) * 2 - 1
+    with torch.no_grad():
+        training = model.G_n_train(depth_net)
+        model.eval()
+        assert model.generator("G_n") is model.G_n and not torch.allclose(model.G_n(depth_net), training)
+    twin = MapsModel(dataclasses.replace(TINY, ema=0.9, normal_residual=True))
+    load_weights(twin.networks(), {f"{n}.{k}": v for n, net in model.networks().items()
+                                   for k, v in net.state_dict().items()}, tmp_path / "x")
+    assert all(torch.equal(a, b) for a, b in zip(twin.G_da_train.parameters(), model.G_da_train.parameters()))
+    with pytest.raises(ValueError, match="ema"):
+        MapsModel(dataclasses.replace(TINY, ema=1.0))

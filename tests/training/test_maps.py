@@ -85,6 +85,23 @@ def test_the_specular_stage_trains_on_exemplar_maps_with_the_highlight_input(tmp
     assert tensors["G_sp.encoder.0.1.weight"].shape[1] == 7 and "G_sp_train.encoder.0.1.weight" in tensors
 
 
+def test_with_ema_the_run_keeps_both_weights_and_the_exported_model_the_averages(tmp_path):
+    """[model] ema (issue 15): a checkpoint holds the averaged generators and the trained ones; the
+    resumed run and `export-model` read them, and the model ships the averages."""
+    from ngp_mi.models.pretrained import export_model
+
+    run = train_maps(maps_recipe(tmp_path, "ema", iterations=2, device='"cpu"'), log=lambda *_: None,
+                     overrides=["model.ema=0.5"])
+    tensors = weights(run)
+    for name in ("G_n", "G_da", "G_depth", "E_da"):
+        key = next(k for k in tensors if k.startswith(f"{name}.") and k.endswith("weight"))
+        trained = tensors[f"{name}_train.{key.split('.', 1)[1]}"]
+        assert not torch.equal(tensors[key], trained), f"{name}'s average equals its trained weights"
+    shipped = load_file(export_model(tmp_path / "model", run) / "maps.safetensors")
+    assert not any("_train." in k for k in shipped)
+    assert all(torch.equal(v, tensors[k.removeprefix("maps.")]) for k, v in shipped.items() if k.startswith("maps."))
+
+
 def test_maps_from_trains_the_specular_stage_alone_on_another_runs_map_networks(tmp_path):
     from ngp_mi.cli import main
 
