@@ -32,6 +32,16 @@ def config_from_dict(config_class: type, values: dict[str, Any]) -> Any:
     return config_class(**{k: tuples(v) for k, v in values.items()})
 
 
+@torch.no_grad()
+def update_moving_average(average: nn.Module, trained: nn.Module, decay: float) -> None:
+    """θ̄ ← decay θ̄ + (1 − decay) θ for ``average``'s weights (Polyak averaging of a generator, as
+    ProGAN and StyleGAN); its buffers are copied from ``trained``."""
+    for a, t in zip(average.parameters(), trained.parameters()):
+        a.lerp_(t, 1.0 - decay)
+    for a, t in zip(average.buffers(), trained.buffers()):
+        a.copy_(t)
+
+
 class BaseModel(nn.Module):
     """Subclasses set the class attributes below and ``self.config``; see the module docstring."""
 

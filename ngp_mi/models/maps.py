@@ -29,7 +29,7 @@ from torch import nn
 from ngp_mi.camera import Camera
 from ngp_mi.lights import overhead_rig
 from ngp_mi.models import losses
-from ngp_mi.models.base import BaseModel, config_from_dict
+from ngp_mi.models.base import BaseModel, config_from_dict, update_moving_average
 from ngp_mi.nets.networks import ENCODER_POOLS, PaletteGenerator, define_D, define_E, define_G, define_palette_G
 from ngp_mi.render.from_depth import noc_from_depth_batch, normals_from_depth, smooth_depth
 from ngp_mi.render.shading import DEFAULT, CameraLights, Constants, shade
@@ -218,17 +218,12 @@ class MapsModel(BaseModel):
         mode the trained copy the optimiser moves, else the average; without, the one network."""
         return getattr(self, f"{name}_train" if self.config.ema and self.training else name)
 
-    @torch.no_grad()
     def update_average(self) -> None:
         """θ̄ ← ema θ̄ + (1 − ema) θ for each generator's weights (buffers copied); nothing without ``ema``."""
         if not self.config.ema:
             return
         for name in GENERATORS:
-            average, trained = getattr(self, name), getattr(self, f"{name}_train")
-            for a, t in zip(average.parameters(), trained.parameters()):
-                a.lerp_(t, 1.0 - self.config.ema)
-            for a, t in zip(average.buffers(), trained.buffers()):
-                a.copy_(t)
+            update_moving_average(getattr(self, name), getattr(self, f"{name}_train"), self.config.ema)
 
     # ------------------------------------------------------------------ pieces
     def render_diffuse(self, normal: torch.Tensor, albedo: torch.Tensor, mask: torch.Tensor,

@@ -34,7 +34,7 @@ import torch
 
 from ngp_mi.camera import Camera
 from ngp_mi.models import losses
-from ngp_mi.models.base import BaseModel, config_from_dict
+from ngp_mi.models.base import BaseModel, config_from_dict, update_moving_average
 from ngp_mi.models.maps import MapsModel, cameras_of, net_to_depth
 from ngp_mi.nets.networks import ResnetGenerator, define_D, define_G
 
@@ -194,15 +194,10 @@ class SpecularModel(BaseModel):
         """The generator the optimiser moves: G_sp itself, or with ``ema`` the copy G_sp averages."""
         return self.G_sp_train if self.config.ema else self.G_sp
 
-    @torch.no_grad()
     def update_average(self) -> None:
         """θ̄ ← ema θ̄ + (1 − ema) θ for G_sp's weights (buffers copied); nothing without ``ema``."""
-        if not self.config.ema:
-            return
-        for average, trained in zip(self.G_sp.parameters(), self.G_sp_train.parameters()):
-            average.lerp_(trained, 1.0 - self.config.ema)
-        for average, trained in zip(self.G_sp.buffers(), self.G_sp_train.buffers()):
-            average.copy_(trained)
+        if self.config.ema:
+            update_moving_average(self.G_sp, self.G_sp_train, self.config.ema)
 
     @classmethod
     def config_from_recipe(cls, recipe: dict[str, Any]) -> SpecularConfig | None:

@@ -86,8 +86,8 @@ def test_the_specular_stage_trains_on_exemplar_maps_with_the_highlight_input(tmp
 
 
 def test_with_ema_the_run_keeps_both_weights_and_the_exported_model_the_averages(tmp_path):
-    """[model] ema (issue 15): a checkpoint holds the averaged generators and the trained ones; the
-    resumed run and `export-model` read them, and the model ships the averages."""
+    """[model] ema (issue 15): a checkpoint holds the averaged generators and the trained ones, and
+    `export-model` ships the averages."""
     from ngp_mi.models.pretrained import export_model
 
     run = train_maps(maps_recipe(tmp_path, "ema", iterations=2, device='"cpu"'), log=lambda *_: None,
