@@ -192,7 +192,7 @@ def compare_flags(p: argparse.ArgumentParser) -> None:
     from ngp_mi.eval.compare import CompareConfig
 
     p.add_argument("--source", default=default(CompareConfig, "source"), help="chair | car | mesh folder / file | "
-                   "scene .xml (default: %(default)s)")
+                   "scene .xml (default: the --maps-checkpoint run's source, else chair)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--num-shapes", type=at_least(1), default=default(CompareConfig, "num_shapes"),
                    help="shapes (default: %(default)s)")

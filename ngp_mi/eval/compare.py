@@ -29,6 +29,7 @@ the full frame and on the object only (mask from the G-buffer).
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import statistics
 import time
@@ -46,6 +47,7 @@ from ngp_mi.eval.fid import InceptionFeatures
 from ngp_mi.eval.metrics import added_light_placement, fid_from_features, flip, kernel_inception_distance, psnr, ssim
 from ngp_mi.eval.report import COMPARE_METRICS, plot_speed_accuracy, write_compare_report
 from ngp_mi.lights import Light, overhead_rig
+from ngp_mi.models.checkpoint import newest_readable
 from ngp_mi.models.maps import MapsModel
 from ngp_mi.models.specular import SpecularModel
 from ngp_mi.nets.networks import check_image_size
@@ -58,7 +60,7 @@ from ngp_mi.viz import contact_sheet, linear_to_srgb, save_png, to_uint8
 
 @dataclasses.dataclass(frozen=True)
 class CompareConfig:
-    source: str = "chair"
+    source: str | None = None  # None: the maps run's family ([data] source of its recipe), else chair
     num_shapes: int = 3
     views: int = 2
     resolution: int = 128
@@ -114,6 +116,16 @@ def _timed(fn: Callable[[], np.ndarray]) -> tuple[np.ndarray, float]:
     return image, time.perf_counter() - start
 
 
+def trained_source(run: str | None) -> str:
+    """The ``[data] source`` a ``train maps`` run trained on (its newest checkpoint's recipe): the
+    shapes its maps are compared on by default, so a car run is not scored on chairs; chair without
+    a run."""
+    if run is None:
+        return "chair"
+    tables = json.loads(newest_readable(run)[1]["config"])
+    return tables.get("data", {}).get("source", "chair")
+
+
 def run_compare(config: CompareConfig, out: str | Path, log=print) -> dict[str, Any]:
     """Render, time and score every method; write images, ``results.json`` and ``report.html``."""
     out = Path(out)
@@ -124,6 +136,8 @@ def run_compare(config: CompareConfig, out: str | Path, log=print) -> dict[str, 
     inception = None
     if config.inception_weights:
         inception = InceptionFeatures(config.inception_weights)
+    if config.source is None:
+        config = dataclasses.replace(config, source=trained_source(config.maps_checkpoint))
     items = resolve_source(config.source, config.num_shapes, config.seed)
     model = specular = None
     if config.maps_checkpoint:

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from ngp_mi.camera import Camera
-from ngp_mi.eval.compare import CompareConfig, run_compare
+from ngp_mi.eval.compare import CompareConfig, run_compare, trained_source
 from ngp_mi.eval.metrics import psnr
 from ngp_mi.lights import overhead_rig
 from ngp_mi.render.gbuffer import GBufferRenderer, maps_to_tensors
@@ -45,6 +45,17 @@ def test_r_diff_over_pi_equals_unshadowed_lambertian_radiance():
     interior = maps["mask"] > 0
     interior &= np.roll(interior, 1, 0) & np.roll(interior, -1, 0) & np.roll(interior, 1, 1) & np.roll(interior, -1, 1)
     assert psnr(reference, ours / math.pi, interior.astype(float)) > 45.0
+
+
+def test_without_a_source_compare_scores_the_family_the_maps_trained_on(tmp_path, tiny_maps_run):
+    """A car run compared without --source is scored on cars, not on the default chairs."""
+    from ngp_mi.models.checkpoint import save_checkpoint
+
+    assert trained_source(None) == "chair"
+    assert trained_source(str(tiny_maps_run)) == "chair"  # the tiny recipe's family
+    car_run = tmp_path / "car_run"
+    save_checkpoint(car_run, 5, {"G": torch.nn.Linear(1, 1)}, {"config": json.dumps({"data": {"source": "car"}})})
+    assert trained_source(str(car_run)) == "car"
 
 
 def test_compare_with_trained_map_networks_and_fid(tmp_path, tiny_maps_run):
