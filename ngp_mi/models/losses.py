@@ -73,9 +73,14 @@ def noc_cycle_loss(noc_cycled: torch.Tensor, noc_r: torch.Tensor) -> torch.Tenso
     return (noc_cycled - noc_r).abs().mean()
 
 
-def normal_cycle_loss(normal_cycled: torch.Tensor, normal_r: torch.Tensor) -> torch.Tensor:
-    """L_n^cyc (App. B, Eq. loss_normal_cyc): ‖G_n(G_depth(R_diff(N^r, I_da^r, L))) − N^r‖₁."""
-    return (normal_cycled - normal_r).abs().mean()
+def normal_cycle_loss(normal_cycled: torch.Tensor, normal_r: torch.Tensor,
+                      weight: torch.Tensor | None = None) -> torch.Tensor:
+    """L_n^cyc (App. B, Eq. loss_normal_cyc): ‖G_n(G_depth(R_diff(N^r, I_da^r, L))) − N^r‖₁.
+    ``weight`` (N, 1, H, W): the mean over the pixels it selects only (all of them: the paper's)."""
+    error = (normal_cycled - normal_r).abs()
+    if weight is None:
+        return error.mean()
+    return (error * weight).sum() / (weight.sum() * error.shape[1]).clamp_min(1.0)
 
 
 def albedo_cycle_loss(albedo_cycled: torch.Tensor, albedo_r: torch.Tensor) -> torch.Tensor:

@@ -87,6 +87,12 @@ class MapsConfig:
     # supervision the paper's unpaired setting does not use, which any dataset rendered from 3-D
     # models has. See :meth:`MapsModel.normal_cycle_input`.
     normal_cycle_depth: str = "generated"
+    # Restrict L_n^cyc to the pixels where G_n's input in the normal cycle and the real depth agree:
+    # both on the object within this depth difference (world units), or both off it. A coarse
+    # reconstruction misses slats and misplaces surfaces; there the real normal belongs to another
+    # surface, or to none G_n can see, and pairing them teaches G_n to invent geometry. 0: off (every
+    # pixel, the paper's). See :meth:`MapsModel.normal_cycle_agreement`.
+    normal_cycle_agreement: float = 0.0
     # G_da's output: "image" (the paper's: a ResNet generator's tanh image) or "palette" (a soft
     # partition into ``albedo_parts`` regions, one colour of z_da each; the colours bypass the instance
     # norms that remove absolute colour). See :class:`ngp_mi.nets.networks.PaletteGenerator`.
@@ -123,6 +129,9 @@ class MapsConfig:
         if self.normal_cycle_depth not in NORMAL_CYCLE_DEPTHS:
             raise ValueError(f"normal_cycle_depth must be one of {NORMAL_CYCLE_DEPTHS}, "
                              f"got {self.normal_cycle_depth!r}")
+        if not 0 <= self.normal_cycle_agreement <= 1:
+            raise ValueError(f"normal_cycle_agreement must be a depth difference within [0, 1] (0: off), "
+                             f"got {self.normal_cycle_agreement!r}")
         if not 0 <= self.lambda_gan_n <= 100:
             raise ValueError(f"lambda_gan_n must lie in [0, 100], got {self.lambda_gan_n!r}")
         if not 0 <= self.ema < 1:
@@ -301,7 +310,8 @@ class MapsModel(BaseModel):
         diffuse_r_net = 2 * diffuse_r - 1
         depth_g_net = G_depth(diffuse_r_net)
         noc_g = self.noc(*net_to_depth(depth_g_net), maps_batch)
-        normal_cycled = self.generate_normals(self.normal_cycle_input(depth_g_net, maps_batch), cams_m)
+        normal_cycle_depth = self.normal_cycle_input(depth_g_net, maps_batch)
+        normal_cycled = self.generate_normals(normal_cycle_depth, cams_m)
         mu, logvar = E_da(albedo_r_net, m_m)
         z_encoded = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
         noc_real = self.noc(maps_batch["depth"], m_m, maps_batch)
@@ -324,7 +334,8 @@ class MapsModel(BaseModel):
             "gan_noc": losses.noc_gan_loss(self.D_noc, noc_g),
             "cyc_depth": losses.depth_cycle_loss(depth_cycled_net, d_r_net),
             "cyc_noc": losses.noc_cycle_loss(noc_cycled, noc_r),
-            "cyc_n": losses.normal_cycle_loss(normal_cycled, normal_r),
+            "cyc_n": losses.normal_cycle_loss(normal_cycled, normal_r,
+                                              self.normal_cycle_agreement(normal_cycle_depth, maps_batch)),
             "cyc_da": losses.albedo_cycle_loss(albedo_cycled_net, albedo_r_net),
             "cyc_df": losses.diffuse_cycle_loss(2 * diffuse_cycled - 1, diffuse_r_net),
             "cyc_z": losses.latent_cycle_loss(z_recovered, z),
@@ -350,6 +361,17 @@ class MapsModel(BaseModel):
         elif source == "generated":
             return depth_g_net  # as generated: the gradient reaches G_depth through it
         return depth_to_net(depth, mask)
+
+    def normal_cycle_agreement(self, depth_in_net: torch.Tensor, maps_batch: dict[str, Any]) -> torch.Tensor | None:
+        """The pixels L_n^cyc compares (``normal_cycle_agreement``; None: all): G_n's input
+        ``depth_in_net`` and the real depth both on the object within the tolerance, or both off it."""
+        tolerance = self.config.normal_cycle_agreement
+        if tolerance == 0:
+            return None
+        depth, mask = net_to_depth(depth_in_net.detach())
+        real, real_mask = maps_batch["depth"], maps_batch["mask"]
+        on_both = (mask > 0) & (real_mask > 0) & ((depth - real).abs() <= tolerance)
+        return (on_both | ((mask <= 0) & (real_mask <= 0))).to(depth.dtype)
 
     def discriminator_terms(self) -> torch.Tensor:
         pairs = zip((self.D_n, self.D_da, self.D_df, self.D_depth, self.D_noc),

@@ -9,6 +9,7 @@ from torch.utils.data import DataLoader
 
 from ngp_mi.data.datasets import DepthDataset, ReflectanceMapDataset
 from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
+from ngp_mi.models import losses
 from ngp_mi.models.maps import MapsConfig, MapsModel
 
 TINY = MapsConfig(ngf=8, blocks=1, nef=8, ndf=8, rf_maps=(16, 34), rf_albedo=(16,))
@@ -145,6 +146,43 @@ def test_the_normal_cycle_reads_the_depth_the_recipe_names(loaders, source):
             model.normal_cycle_input(generated, without)
     with pytest.raises(ValueError, match="normal_cycle_depth must be one of"):
         dataclasses.replace(TINY, normal_cycle_depth="blurred")
+
+
+def test_the_normal_cycle_agreement_compares_only_the_pixels_where_both_depths_agree(loaders):
+    """``normal_cycle_agreement``: L_n^cyc ignores the pixels where G_n's input and the real depth
+    disagree (a surface off by more than the tolerance, or an object pixel on one side only) and
+    keeps the agreeing ones, background included; a step stays finite."""
+    from ngp_mi.models.maps import smooth_depth
+
+    torch.manual_seed(8)
+    model = MapsModel(dataclasses.replace(TINY, normal_residual=True, normal_cycle_depth="coarse",
+                                          normal_cycle_agreement=0.05))
+    depth, maps = next(zip(*loaders))
+    mask = maps["mask"].clone()
+    coarse = smooth_depth(maps["depth"], mask, 1.0)
+    on = torch.nonzero(mask[0, 0] > 0)
+    (y0, x0), (y1, x1) = on[0].tolist(), on[len(on) // 2].tolist()
+    coarse[0, 0, y0, x0] += 0.2  # a misplaced surface
+    coarse_mask = mask.clone()
+    coarse_mask[0, 0, y1, x1] = 0  # a missing slat
+    maps = {**maps, "coarse_depth": coarse * coarse_mask, "coarse_mask": coarse_mask}
+    weight = model.normal_cycle_agreement(model.normal_cycle_input(None, maps), maps)
+    assert weight[0, 0, y0, x0] == 0 and weight[0, 0, y1, x1] == 0
+    assert weight[0, 0][(mask[0, 0] <= 0)].eq(1).all()  # both off the object
+    off = ((coarse - maps["depth"]).abs() > 0.05)[mask * coarse_mask > 0].sum()  # the misplaced one too
+    assert weight.sum() == weight.numel() - 1 - off
+    normal = torch.nn.functional.normalize(torch.randn_like(maps["normal"]), dim=1)
+    loss = losses.normal_cycle_loss(normal, maps["normal"], weight)
+    changed = normal.clone()
+    changed[0, :, y0, x0] = -changed[0, :, y0, x0]
+    assert torch.equal(losses.normal_cycle_loss(changed, maps["normal"], weight), loss)
+    assert not torch.equal(losses.normal_cycle_loss(changed, maps["normal"]), losses.normal_cycle_loss(normal, maps["normal"]))
+    assert torch.allclose(losses.normal_cycle_loss(normal, maps["normal"], torch.ones_like(weight)),
+                          losses.normal_cycle_loss(normal, maps["normal"]))
+    assert all(math.isfinite(v) for v in model.optimize(depth, maps).values())
+    assert MapsModel(TINY).normal_cycle_agreement(maps["depth"], maps) is None
+    with pytest.raises(ValueError, match="normal_cycle_agreement must be"):
+        dataclasses.replace(TINY, normal_cycle_agreement=-0.1)
 
 
 def test_palette_albedo_and_masked_encoder_train_and_read_the_object_masks(loaders):
