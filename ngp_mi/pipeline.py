@@ -112,7 +112,7 @@ def generate_normals(maps: MapsModel, depth: torch.Tensor, mask: torch.Tensor, c
     """N^g = G_n(d) (paper Eq. image formation), or the depth map's own normals (ablation ``no_gn``)."""
     if variant == "no_gn":
         return normals_from_depth(depth, mask, camera)
-    own = normals_from_depth(depth, mask, camera) if maps.config.normal_residual else None
+    own = normals_from_depth(depth, mask, camera) if maps.uses_own_normals else None
     return maps.generate_normals(depth_to_net(at_training_distance(depth, mask, camera), mask), [camera], own)
 
 

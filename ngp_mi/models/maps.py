@@ -36,6 +36,7 @@ from ngp_mi.render.shading import DEFAULT, CameraLights, Constants, shade
 
 DEPTH_CENTER, DEPTH_SCALE, MASK_THRESHOLD = 2.0, 0.6, -0.97
 NORMAL_CYCLE_DEPTHS = ("generated", "real", "coarse")
+NORMAL_INPUTS = ("depth", "depth+normals")
 GENERATORS = ("G_n", "G_da", "G_depth", "E_da")
 
 
@@ -63,6 +64,10 @@ class MapsConfig:
     # G_n predicts a correction to the normals of the input depth (finite differences, held fixed)
     # instead of the normals themselves; off in the paper's G_n. See :meth:`MapsModel.generate_normals`.
     normal_residual: bool = False
+    # What G_n reads: "depth" (the paper's: the depth map alone) or "depth+normals" (the depth and its
+    # finite-difference normals, held fixed, as four channels): G_n then need not learn to
+    # differentiate a depth map before it can correct it. See :meth:`MapsModel.generate_normals`.
+    normal_input: str = "depth"
     # How z_da enters G_da: "concat" (the paper's, BicycleGAN's) or "film" (per-channel modulation
     # after each instance norm, which otherwise removes a concatenated constant code). See
     # :class:`ngp_mi.nets.networks.ResnetGenerator`.
@@ -126,6 +131,8 @@ class MapsConfig:
                              f"{self.palette_background!r}")
         if self.encoder_pool not in ENCODER_POOLS:
             raise ValueError(f"encoder_pool must be one of {ENCODER_POOLS}, got {self.encoder_pool!r}")
+        if self.normal_input not in NORMAL_INPUTS:
+            raise ValueError(f"normal_input must be one of {NORMAL_INPUTS}, got {self.normal_input!r}")
         if self.normal_cycle_depth not in NORMAL_CYCLE_DEPTHS:
             raise ValueError(f"normal_cycle_depth must be one of {NORMAL_CYCLE_DEPTHS}, "
                              f"got {self.normal_cycle_depth!r}")
@@ -190,7 +197,7 @@ class MapsModel(BaseModel):
         super().__init__()
         self.config = config
         c = config
-        self.G_n = define_G(1, 3, c.ngf, c.blocks)
+        self.G_n = define_G(1 if c.normal_input == "depth" else 4, 3, c.ngf, c.blocks)
         if c.normal_residual:  # start from the depth's own normals: the correction's last layer is zero
             last = self.G_n.output_conv
             nn.init.zeros_(last.weight)
@@ -263,16 +270,25 @@ class MapsModel(BaseModel):
         """N^g = G_n(d). With ``normal_residual``, N^g = normalise(N_d + G_n(d)) on the object, N_d
         the finite-difference normals of d (no gradient through them: a lone pixel's zero-length
         cross product would send huge gradients into the depth). G_n then starts from the coarse
-        shape's normals and learns the detail, instead of learning the differentiation too.
+        shape's normals and learns the detail, instead of learning the differentiation too. With
+        ``normal_input`` "depth+normals", G_n reads N_d beside d.
         ``from_depth``: N_d when the caller has it (of the true depth, where ``depth_net`` was moved
         to the training distance)."""
-        raw = self.generator("G_n")(depth_net)
-        if not self.config.normal_residual:
+        c = self.config
+        if self.uses_own_normals:
+            depth, mask = net_to_depth(depth_net.detach())
+            if from_depth is None:
+                from_depth = normals_from_depth(depth, mask, cameras)
+        g_n = self.generator("G_n")
+        raw = g_n(depth_net) if c.normal_input == "depth" else g_n(torch.cat([depth_net, from_depth], 1))
+        if not c.normal_residual:
             return raw
-        depth, mask = net_to_depth(depth_net.detach())
-        if from_depth is None:
-            from_depth = normals_from_depth(depth, mask, cameras)
         return torch.where(mask > 0, torch.nn.functional.normalize(from_depth + raw, dim=1, eps=1e-6), raw)
+
+    @property
+    def uses_own_normals(self) -> bool:
+        """Whether :meth:`generate_normals` needs the input depth's own normals (and so its cameras)."""
+        return self.config.normal_residual or self.config.normal_input != "depth"
 
     def decorate(self, depth: torch.Tensor, mask: torch.Tensor, views: dict[str, Any], z: torch.Tensor,
                  cameras: list[Camera] | None = None) -> dict[str, torch.Tensor]:
@@ -282,7 +298,7 @@ class MapsModel(BaseModel):
         Returns network-space ``depth``, ``noc``, ``albedo`` (2x − 1) and unit-length-ish ``normal``."""
         depth_net = depth_to_net(depth, mask)
         noc = self.noc(depth, mask, views)
-        if cameras is None and self.config.normal_residual:
+        if cameras is None and self.uses_own_normals:
             cameras = cameras_of(views, depth.shape[-2:])
         normal = self.generate_normals(depth_net, cameras or [])
         albedo = self.generator("G_da")(torch.cat([noc, normal], 1), z)

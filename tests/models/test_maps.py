@@ -10,7 +10,7 @@ from torch.utils.data import DataLoader
 from ngp_mi.data.datasets import DepthDataset, ReflectanceMapDataset
 from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
 from ngp_mi.models import losses
-from ngp_mi.models.maps import MapsConfig, MapsModel
+from ngp_mi.models.maps import MapsConfig, MapsModel, cameras_of, depth_to_net
 
 TINY = MapsConfig(ngf=8, blocks=1, nef=8, ndf=8, rf_maps=(16, 34), rf_albedo=(16,))
 
@@ -246,3 +246,25 @@ def test_with_ema_the_generators_are_the_moving_averages_of_the_trained_ones(loa
     assert all(torch.equal(a, b) for a, b in zip(twin.G_da_train.parameters(), model.G_da_train.parameters()))
     with pytest.raises(ValueError, match="ema"):
         MapsModel(dataclasses.replace(TINY, ema=1.0))
+
+
+def test_with_normal_input_g_n_reads_the_depths_own_normals_beside_it(loaders):
+    """``normal_input = "depth+normals"``: G_n's first layer reads four channels, its output follows
+    the normals it is given (held fixed: no gradient reaches the depth through them), and training
+    stays finite; an unknown input is refused by name."""
+    torch.manual_seed(3)
+    model = MapsModel(dataclasses.replace(TINY, normal_input="depth+normals"))
+    assert model.uses_own_normals and not MapsModel(TINY).uses_own_normals
+    first = next(m for m in model.G_n.modules() if isinstance(m, torch.nn.Conv2d))
+    assert first.in_channels == 4
+    depth, maps = next(zip(*loaders))
+    depth_net = depth_to_net(maps["depth"], maps["mask"]).requires_grad_(True)
+    own = model.generate_normals(depth_net, cameras_of(maps))
+    given = model.generate_normals(depth_net, cameras_of(maps), from_depth=maps["normal"])
+    assert not torch.allclose(own, given)
+    given.sum().backward()
+    assert torch.isfinite(depth_net.grad).all() and depth_net.grad.abs().sum() > 0
+    history = [model.optimize(d, m) for d, m in zip(*loaders)]
+    assert all(math.isfinite(v) for step in history for v in step.values())
+    with pytest.raises(ValueError, match="normal_input"):
+        dataclasses.replace(TINY, normal_input="normals")
