@@ -13,7 +13,8 @@ finite-difference normals of the same depth (NGP w/o G_n), with three depths as 
 Each call appends one line per run and checkpoint not yet there to ``--log`` (JSONL), so calls
 during training (checkpoints are pruned to the newest three) build a curve; ``--table`` prints the
 log as Markdown; ``--sheets`` writes ``gn_sheet.png`` beside each run (true normals, the
-reconstruction's own, G_n's on it and on the exact depth, four views). ``evaluate maps`` reports
+reconstruction's own, G_n's on it and on the exact depth, four views); ``--edges`` prints where the
+reconstructions' own normals are wrong (silhouettes against the inside of surfaces). ``evaluate maps`` reports
 the same angles for the newest checkpoint with the albedo figures; this script is G_n only, in
 seconds per checkpoint.
 
@@ -83,6 +84,38 @@ def normal_sheet(model: MapsModel, batch: dict, rows: int = 4) -> np.ndarray:
     return contact_sheet(tiles, labels, columns=len(columns))
 
 
+@torch.no_grad()
+def edge_split(batches: list[dict], agree: float = 0.03) -> str:
+    """Where the reconstructions' own normals are wrong: their error (mean, median °) on the pixels
+    both objects cover, split into those within one pixel of either object's silhouette and the
+    rest, the rest again by whether the two surfaces lie within ``agree``; the exact depth's own
+    normals beside them. A Markdown table."""
+    parts: dict[str, dict[str, list[torch.Tensor]]] = {}
+    for batch in batches:
+        cameras = cameras_of(batch)
+        both = batch["mask"] * batch["coarse_mask"]
+        near_off = lambda mask: torch.nn.functional.max_pool2d(1 - mask, 3, 1, 1)
+        edge = torch.maximum(near_off(batch["mask"]), near_off(batch["coarse_mask"])) * both
+        inside = both - edge
+        agrees = ((batch["coarse_depth"] - batch["depth"]).abs() < agree).float()
+        own = {"recon": normals_from_depth(batch["coarse_depth"], batch["coarse_mask"], cameras),
+               "exact": normals_from_depth(batch["depth"], batch["mask"], cameras)}
+        for name, pixels in (("all", both), ("silhouette", edge), ("inside", inside),
+                             (f"inside, surfaces within {agree}", inside * agrees),
+                             ("inside, surfaces apart", inside * (1 - agrees))):
+            for depth, normals in own.items():
+                parts.setdefault(name, {}).setdefault(depth, []).append(
+                    angular_error_deg(normals, batch["normal"], pixels))
+    total = torch.cat(parts["all"]["recon"]).numel()
+    lines = ["| pixels | share | own normals, reconstructions (mean, median °) | own normals, exact depth |",
+             "|---|---|---|---|"]
+    for name, by in parts.items():
+        recon, exact = torch.cat(by["recon"]), torch.cat(by["exact"])
+        lines.append(f"| {name} | {recon.numel() / total:.0%} | {recon.mean():.1f} ({recon.median():.1f}) | "
+                     f"{exact.mean():.1f} ({exact.median():.1f}) |")
+    return "\n".join(lines)
+
+
 def table(log: Path) -> str:
     rows = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
     lines = ["| run | step | " + " | ".join(f"{k}: G_n / own (mean, median °)" for k in INPUTS) + " |",
@@ -99,12 +132,21 @@ def main() -> None:
     parser.add_argument("runs", nargs="*", help="train maps runs (each of their checkpoints)")
     parser.add_argument("--held-out", help="render-dataset folder of held-out shapes (depth, normal, mask)")
     parser.add_argument("--coarse-data", help="the same shapes and views, render-dataset --coarse-shapes")
-    parser.add_argument("--log", required=True, help="JSONL the figures are appended to")
+    parser.add_argument("--log", help="JSONL the figures are appended to (needed with runs or --table)")
     parser.add_argument("--table", action="store_true", help="print the log as a Markdown table")
+    parser.add_argument("--edges", action="store_true",
+                        help="print where the reconstructions' own normals are wrong: silhouettes against inside")
     parser.add_argument("--sheets", action="store_true",
                         help="write RUN/../gn_sheet.png: true, own and G_n's normals of 4 views (newest checkpoint)")
     args = parser.parse_args()
-    log = Path(args.log)
+    if (args.runs or args.table) and not args.log:
+        parser.error("runs and --table need --log")
+    log = Path(args.log or ".")
+    if args.edges:
+        if not (args.held_out and args.coarse_data):
+            parser.error("--edges needs --held-out and --coarse-data")
+        print(edge_split(list(DataLoader(WithCoarseDepth(ReflectanceMapDataset(args.held_out), args.coarse_data),
+                                         batch_size=8))))
     if args.runs:
         if not (args.held_out and args.coarse_data):
             parser.error("runs need --held-out and --coarse-data")
