@@ -32,7 +32,6 @@ import argparse
 import dataclasses
 import json
 import time
-import tomllib
 from pathlib import Path
 
 import torch
@@ -42,18 +41,18 @@ from bench_gn_curve import normal_errors
 from ngp_mi.data.datasets import ReflectanceMapDataset, WithCoarseDepth
 from ngp_mi.models import losses
 from ngp_mi.models.maps import MapsModel, cameras_of, depth_to_net
-from ngp_mi.training.recipe import read_tables
+from ngp_mi.training.recipe import parse_override, read_tables
 
 ROOT = Path(__file__).resolve().parents[1]
 ARMS = {"coarse": ("coarse", 0.0), "coarse-agree": ("coarse", 0.03), "real": ("real", 0.0)}
 
 
 def train_arm(arm: str, recipe: Path, train_views: WithCoarseDepth, held_out: list[dict], iterations: int,
-              every: int, batch_size: int, seed: int, log, model_overrides: dict | None = None,
+              every: int, batch_size: int, seed: int, log, model_overrides: tuple[str, ...] = (),
               label: str | None = None) -> None:
     source, agreement = ARMS[arm]
-    tables = read_tables(recipe, known=("data", "model", "train", "specular"))
-    tables["model"].update(model_overrides or {})
+    tables = read_tables(recipe, [f"model.{item}" for item in model_overrides],
+                         known=("data", "model", "train", "specular"))
     config = dataclasses.replace(MapsModel.config_from_recipe(tables), normal_cycle_depth=source,
                                  normal_cycle_agreement=agreement, ema=0.0)
     arm = label or arm
@@ -112,16 +111,14 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="outputs/bench/gn-ceiling")
     parser.add_argument("--model", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a [model] key of the recipe (TOML value), e.g. ngf=32 or "
+                        help="override a [model] key of the recipe (a TOML value or a bare word, as --set), e.g. ngf=32 or "
                              "normal_input='\"depth+normals\"'; the arms are then logged as ARM KEY=VALUE …")
     args = parser.parse_args()
-    overrides = {}
     for item in args.model:
-        key, _, value = item.partition("=")
         try:
-            overrides[key] = tomllib.loads(f"v = {value}")["v"]
-        except tomllib.TOMLDecodeError as error:
-            parser.error(f"--model {item!r}: {value!r} is not a TOML value ({error})")
+            parse_override(f"model.{item}")  # the recipe's --set syntax: a TOML value or a bare word
+        except ValueError as error:
+            parser.error(f"--model {item!r}: {error}")
     suffix = "".join(f" {item}" for item in args.model)
     arms = args.arms.split(",")
     for arm in arms:
@@ -150,7 +147,7 @@ def main() -> None:
         rows[:] = [r for r in rows if r["arm"] != labels[arm]]  # an unfinished arm starts again
         log_path.write_text("".join(json.dumps(r) + "\n" for r in rows))
         train_arm(arm, Path(args.recipe), train_views, held_out, args.iterations, args.every, args.batch_size,
-                  args.seed, log, overrides, labels[arm])
+                  args.seed, log, tuple(args.model), labels[arm])
     print(table(rows))
 
 

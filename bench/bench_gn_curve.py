@@ -91,10 +91,12 @@ def edge_split(batches: list[dict], agree: float = 0.03) -> str:
     rest, the rest again by whether the two surfaces lie within ``agree``; the exact depth's own
     normals beside them. A Markdown table."""
     parts: dict[str, dict[str, list[torch.Tensor]]] = {}
+    def near_off(mask: torch.Tensor) -> torch.Tensor:  # 1 within one pixel of the background
+        return torch.nn.functional.max_pool2d(1 - mask, 3, 1, 1)
+
     for batch in batches:
         cameras = cameras_of(batch)
         both = batch["mask"] * batch["coarse_mask"]
-        near_off = lambda mask: torch.nn.functional.max_pool2d(1 - mask, 3, 1, 1)
         edge = torch.maximum(near_off(batch["mask"]), near_off(batch["coarse_mask"])) * both
         inside = both - edge
         agrees = ((batch["coarse_depth"] - batch["depth"]).abs() < agree).float()
@@ -141,17 +143,14 @@ def main() -> None:
     args = parser.parse_args()
     if (args.runs or args.table) and not args.log:
         parser.error("runs and --table need --log")
-    log = Path(args.log or ".")
+    if (args.runs or args.edges) and not (args.held_out and args.coarse_data):
+        parser.error("runs and --edges need --held-out and --coarse-data")
+    log = Path(args.log) if args.log else None
+    batches = list(DataLoader(WithCoarseDepth(ReflectanceMapDataset(args.held_out), args.coarse_data), batch_size=8)) \
+        if args.runs or args.edges else []
     if args.edges:
-        if not (args.held_out and args.coarse_data):
-            parser.error("--edges needs --held-out and --coarse-data")
-        print(edge_split(list(DataLoader(WithCoarseDepth(ReflectanceMapDataset(args.held_out), args.coarse_data),
-                                         batch_size=8))))
+        print(edge_split(batches))
     if args.runs:
-        if not (args.held_out and args.coarse_data):
-            parser.error("runs need --held-out and --coarse-data")
-        views = WithCoarseDepth(ReflectanceMapDataset(args.held_out), args.coarse_data)
-        batches = list(DataLoader(views, batch_size=8))
         done = {(r["run"], r["step"]) for r in map(json.loads, log.read_text().splitlines())} if log.exists() else set()
         log.parent.mkdir(parents=True, exist_ok=True)
         for run in map(Path, args.runs):

@@ -10,7 +10,8 @@ from torch.utils.data import DataLoader
 from ngp_mi.data.datasets import DepthDataset, ReflectanceMapDataset
 from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
 from ngp_mi.models import losses
-from ngp_mi.models.maps import MapsConfig, MapsModel, cameras_of, depth_to_net
+from ngp_mi.models.maps import MapsConfig, MapsModel, cameras_of, depth_to_net, net_to_depth
+from ngp_mi.render.from_depth import normals_from_depth
 
 TINY = MapsConfig(ngf=8, blocks=1, nef=8, ndf=8, rf_maps=(16, 34), rf_albedo=(16,))
 
@@ -250,20 +251,28 @@ def test_with_ema_the_generators_are_the_moving_averages_of_the_trained_ones(loa
 
 def test_with_normal_input_g_n_reads_the_depths_own_normals_beside_it(loaders):
     """``normal_input = "depth+normals"``: G_n's first layer reads four channels, its output follows
-    the normals it is given (held fixed: no gradient reaches the depth through them), and training
-    stays finite; an unknown input is refused by name."""
+    the normals it is given, its own are held fixed (the depth's gradient is the one it gets with
+    them passed in as constants), and training stays finite; an unknown input is refused by name."""
     torch.manual_seed(3)
     model = MapsModel(dataclasses.replace(TINY, normal_input="depth+normals"))
     assert model.uses_own_normals and not MapsModel(TINY).uses_own_normals
     first = next(m for m in model.G_n.modules() if isinstance(m, torch.nn.Conv2d))
     assert first.in_channels == 4
     depth, maps = next(zip(*loaders))
+    cameras = cameras_of(maps)
     depth_net = depth_to_net(maps["depth"], maps["mask"]).requires_grad_(True)
-    own = model.generate_normals(depth_net, cameras_of(maps))
-    given = model.generate_normals(depth_net, cameras_of(maps), from_depth=maps["normal"])
+    own = model.generate_normals(depth_net, cameras)
+    given = model.generate_normals(depth_net, cameras, from_depth=maps["normal"])
     assert not torch.allclose(own, given)
     given.sum().backward()
     assert torch.isfinite(depth_net.grad).all() and depth_net.grad.abs().sum() > 0
+    depth_net.grad = None
+    own.sum().backward()  # the same gradient as with its own normals passed in as constants
+    through_own = depth_net.grad.clone()
+    depth_net.grad = None
+    constant = normals_from_depth(*net_to_depth(depth_net.detach()), cameras)
+    model.generate_normals(depth_net, cameras, from_depth=constant).sum().backward()
+    assert torch.allclose(through_own, depth_net.grad)
     history = [model.optimize(d, m) for d, m in zip(*loaders)]
     assert all(math.isfinite(v) for step in history for v in step.values())
     with pytest.raises(ValueError, match="normal_input"):
