@@ -473,7 +473,8 @@ def export_model_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--maps-run", help="a `train maps` output folder (required unless --add-encoder)")
     p.add_argument("--add-encoder", metavar="SHAPE_RUN",
                    help="instead: put this `train shape` run's encoder ([train] encoder_for) into the model folder "
-                        "--out, whose G_shape it was trained for; nothing else changes")
+                        "--out, whose G_shape it was trained for; nothing else changes (a model folder with the "
+                        "same decoder works too: --out itself re-writes its encoder in float16)")
     p.add_argument("--shape-run", help="a `train shape` output folder (G_shape)")
     p.add_argument("--shape-from", help="instead of --shape-run: keep G_shape (and its card facts) of this model "
                                         "folder or shipped name, when only the maps were re-trained")
@@ -508,10 +509,11 @@ def evaluate_flags(p: argparse.ArgumentParser) -> None:
     from ngp_mi.eval.shape_eval import evaluate_shape
 
     p.add_argument("stage", choices=["maps", "shape"], help="what to evaluate: map networks, or a shape prior")
-    p.add_argument("--run", required=True, help="maps: a `train maps` run (with ckpt-*); shape: a `train shape` run, "
-                                                "a shipped model's name (chair, car) or an exported model folder")
+    p.add_argument("--run", required=True, help="a `train maps` run (maps) or `train shape` run (shape), a shipped "
+                                                "model's name (chair, car) or an exported model folder")
     p.add_argument("--data", help="maps: the held-out render-dataset folder (required)")
-    p.add_argument("--out", help="output folder (default: RUN/eval, or RUN/eval-shape)")
+    p.add_argument("--out", help="output folder (default: RUN/eval or RUN/eval-shape for a run, "
+                                 "outputs/eval-maps/NAME or outputs/eval-shape/NAME for a model)")
     p.add_argument("--coarse-sigma", type=float, default=default(evaluate_maps, "coarse_sigma"),
                    help="maps: smoothing of the coarse depth, px (without --coarse-data) (default: %(default)s)")
     p.add_argument("--coarse-data", help="maps: the same shapes and views rendered with `render-dataset --coarse-shapes "
@@ -538,7 +540,9 @@ def evaluate(args: argparse.Namespace) -> int:
 
     if not args.data:
         raise ValueError("evaluate maps: --data (a held-out render-dataset folder) is required")
-    result = evaluate_maps(args.run, args.data, args.out or f"{args.run}/eval", coarse_sigma=args.coarse_sigma,
+    out = args.out or (f"{args.run}/eval" if (Path(args.run) / "recipe.json").exists()
+                       else f"outputs/eval-maps/{Path(args.run).name}")
+    result = evaluate_maps(args.run, args.data, out, coarse_sigma=args.coarse_sigma,
                            coarse_data=args.coarse_data)
     print(json.dumps(result, indent=1))
     return 0

@@ -45,14 +45,27 @@ def _open(path: Path) -> IO[str]:
 
 
 @contextlib.contextmanager
-def exclusive(path: str | Path, what: str) -> Iterator[None]:
-    """Hold ``path`` for this process while the block runs, or raise :class:`Busy` naming its holder."""
+def exclusive(path: str | Path, what: str, wait: float = 0.0) -> Iterator[None]:
+    """Hold ``path`` for this process while the block runs, or raise :class:`Busy` naming its holder.
+
+    ``wait`` > 0 gives the holder that many seconds to finish first (jobs started together that
+    share a cache: the first renders it, the others then find it complete); said once on stderr."""
     path = Path(path)
     with _open(path) as f:
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise Busy(f"{path}: {what} is being written by {_holder(path)}; wait for it to finish or stop it") from None
+        deadline, said = time.monotonic() + wait, False
+        while True:
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    raise Busy(f"{path}: {what} is being written by {_holder(path)}; wait for it to finish or "
+                               "stop it") from None
+                if not said:
+                    print(f"{path}: {what} is being written by {_holder(path)}; waiting up to {wait:.0f} s",
+                          file=sys.stderr, flush=True)
+                    said = True
+                time.sleep(min(0.5, max(deadline - time.monotonic(), 0.0)))
         f.seek(0)
         f.truncate()
         f.write(json.dumps({"pid": os.getpid(), "host": socket.gethostname(),

@@ -217,8 +217,11 @@ def _logging_to(out: Path) -> Iterator[None]:
 
 def render_dataset(config: DatasetConfig, out: str | Path, shard: tuple[int, int] = (0, 1),
                    strict: bool = False, progress: bool = True, workers: int = 1,
-                   reconstruct: Reconstruct | None = None) -> dict[str, Any]:
+                   reconstruct: Reconstruct | None = None, wait: float = 0.0) -> dict[str, Any]:
     """Render (or finish rendering) this shard of the dataset; returns the summary.
+
+    ``wait`` seconds: how long to wait for another job writing the shard (a training cache that
+    jobs started together share) before :class:`ngp_mi.lock.Busy`; 0, the CLI's, fails at once.
 
     ``workers`` > 1 starts that many processes (:mod:`ngp_mi.data.workers`), worker j taking shard
     ``(K + N·j) / (N·workers)`` of the whole (so the shard is split like ``--shard`` splits the
@@ -239,7 +242,7 @@ def render_dataset(config: DatasetConfig, out: str | Path, shard: tuple[int, int
         refs = resolve_shapes(config.source, config.num_shapes, config.seed)
     check_memory(config, workers)
     suffix = _shard_suffix(shard)
-    with lock.exclusive(out / f"render-dataset{suffix}.lock", f"shard {shard[0]}/{shard[1]} of {out}"), \
+    with lock.exclusive(out / f"render-dataset{suffix}.lock", f"shard {shard[0]}/{shard[1]} of {out}", wait), \
             _logging_to(out):
         lock.wait_exclusive(_workers_lock(out, shard), "render-dataset", WORKERS_EXIT_SECONDS)
         _check_settings(out, config)

@@ -23,8 +23,8 @@ from torch.utils.data import DataLoader
 
 from ngp_mi.atomic import write_json, write_text
 from ngp_mi.data.datasets import ReflectanceMapDataset, WithCoarseDepth
-from ngp_mi.models.checkpoint import newest_checkpoint
-from ngp_mi.models.maps import MapsModel, cameras_of, depth_to_net
+from ngp_mi.models import pretrained
+from ngp_mi.models.maps import cameras_of, depth_to_net
 from ngp_mi.render.from_depth import normals_from_depth, smooth_depth
 from ngp_mi.viz import chw_to_uint8, contact_sheet, save_png
 
@@ -62,15 +62,16 @@ def single_colour_l1(albedo: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 def evaluate_maps(run: str | Path, data: str | Path, out: str | Path, coarse_sigma: float = 2.0,
                   latent_samples: int = 4, batch_size: int = 8, seed: int = 0,
                   coarse_data: str | Path | None = None) -> dict[str, Any]:
-    """Evaluate a run's newest checkpoint on a held-out ``render-dataset`` folder; writes ``eval.json`` / ``eval.md``.
+    """Evaluate a run's newest checkpoint, or a model folder / shipped name (``chair``), on a held-out
+    ``render-dataset`` folder; writes ``eval.json`` / ``eval.md``.
 
     The coarse depth is ``coarse_data`` — a folder of the same shapes and views rendered from their
     autoencoder reconstructions (``render-dataset --coarse-shapes``), paired by (shape id, view) —
     or, without it, the ground-truth depth smoothed by ``coarse_sigma`` pixels. Normal errors count
     the pixels on both the detailed and the coarse object.
     """
+    model, checkpoint = pretrained.load_map_networks(run)
     torch.manual_seed(seed)
-    model = MapsModel.from_run(run)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     errors_gn, errors_depth, fidelity, flat, diversity, overlap = [], [], [], [], [], []
@@ -110,7 +111,7 @@ def evaluate_maps(run: str | Path, data: str | Path, out: str | Path, coarse_sig
                                            "z sample", "z sample"], columns=len(images))
     gn, from_depth = torch.cat(errors_gn), torch.cat(errors_depth)
     result = {
-        "checkpoint": str(newest_checkpoint(run)), "data": str(data),
+        "checkpoint": checkpoint, "data": str(data),
         "coarse": str(coarse_data) if coarse_data else f"smoothed, sigma {coarse_sigma} px",
         "coarse_overlap": torch.stack(overlap).mean().item(),
         "normal_error_deg": {"G_n": {"mean": gn.mean().item(), "median": gn.median().item()},

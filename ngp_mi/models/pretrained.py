@@ -21,11 +21,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
 from ngp_mi.atomic import atomic_path, write_json
 from ngp_mi.models.base import config_from_dict
-from ngp_mi.models.checkpoint import load_weights, module_tensors, newest_readable
+from ngp_mi.models.checkpoint import load_weights, module_tensors, newest_checkpoint, newest_readable
 from ngp_mi.models.maps import MapsConfig, MapsModel
 from ngp_mi.models.shape import CoarseShapes, ShapeConfig, ShapeModel
 from ngp_mi.models.specular import SpecularConfig, SpecularModel
@@ -34,6 +35,10 @@ PRETRAINED_ROOT = Path(__file__).resolve().parents[1] / "pretrained"
 # G_shape's encoder reconstructs a given shape (NGP's coarse shapes, `render-dataset --coarse-shapes`); model
 # folders exported before it was shipped hold the other two and load with ``has_encoder`` False.
 INFERENCE_NETWORKS = {"maps": ("G_n", "G_da", "E_da"), "specular": ("G_sp",), "shape": ("encoder", "decoder", "G_latent")}
+# Networks stored in float16 and loaded back as float32. The encoder only turns a given shape into the
+# code of its coarse version (`--coarse-shapes`); rounded, its reconstructions keep their IoU (bench/RESULTS.md)
+# and both families' encoders fit the 30 MB the shipped models may take. What the images depend on stays float32.
+HALF_PRECISION = {"shape": ("encoder",)}
 
 
 def available() -> list[str]:
@@ -54,7 +59,20 @@ def resolve(name_or_path: str | Path) -> Path:
 
 
 def _tensors(model: Any, names: tuple[str, ...], prefix: str) -> dict[str, torch.Tensor]:
-    return module_tensors({name: getattr(model, name) for name in names}, f"{prefix}.")
+    """The weights of ``model``'s networks ``names`` as a model folder stores them (``HALF_PRECISION``)."""
+    half = HALF_PRECISION.get(prefix, ())
+    return {key: value.half() if key.split(".")[1] in half and value.dtype == torch.float32 else value
+            for key, value in module_tensors({name: getattr(model, name) for name in names}, f"{prefix}.").items()}
+
+
+def _file_facts(path: Path) -> dict[str, Any]:
+    """A weights file's entry in the card: size, sha256 and the networks it holds in float16."""
+    prefix = path.stem
+    with safe_open(path, framework="pt") as f:
+        keys = list(f.keys())
+    half = [f"{prefix}.{name}" for name in HALF_PRECISION.get(prefix, ())
+            if any(key.startswith(f"{prefix}.{name}.") for key in keys)]
+    return {"bytes": path.stat().st_size, "sha256": _sha256(path), **({"float16": half} if half else {})}
 
 
 def _sha256(path: Path) -> str:
@@ -131,31 +149,35 @@ def export_model(out: str | Path, maps_run: str | Path, shape_run: str | Path | 
             "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
                         "torch": torch.__version__},
             "figures": figures or {}, "notes": notes,
-            "files": {name: {"bytes": (out / name).stat().st_size, "sha256": _sha256(out / name)} for name in files}}
+            "files": {name: _file_facts(out / name) for name in files}}
     write_json(out / "card.json", card)
     return out
 
 
-def add_encoder(folder: str | Path, run: str | Path) -> Path:
-    """Put the encoder of a ``train shape`` run with ``[train] encoder_for`` into the model folder whose
-    G_shape it was trained for; the maps and the rest of the card stay (for folders whose runs are gone)."""
+def add_encoder(folder: str | Path, source: str | Path) -> Path:
+    """Put the encoder of ``source`` into the model folder whose G_shape it was trained for; the maps and
+    the rest of the card stay (for folders whose runs are gone). ``source`` is a ``train shape`` run with
+    ``[train] encoder_for``, or a model folder with the same decoder (the folder itself re-writes its
+    encoder as folders now store it, ``HALF_PRECISION``)."""
     folder = resolve(folder)
     card = json.loads((folder / "card.json").read_text())
     if "shape" not in card["configs"]:
         raise ValueError(f"{folder}: this model ships no shape prior to add an encoder to")
-    kept, trained = _shape_of(folder, card["configs"]), ShapeModel.from_run(run)
-    if trained is None:
-        raise ValueError(f"{run}: no `train shape` checkpoint")
+    is_run = (Path(source) / "recipe.json").exists()
+    kept, trained = _shape_of(folder, card["configs"]), load_shape_prior(source)
+    trained.require_encoder()
     for name in ("decoder", "G_latent"):
         ours, theirs = getattr(trained, name).state_dict(), getattr(kept, name).state_dict()
         if ours.keys() != theirs.keys() or any(not torch.equal(ours[k], theirs[k]) for k in ours):
-            raise ValueError(f"{run}: its {name} differs from {folder}'s, so its encoder was not trained for this "
+            raise ValueError(f"{source}: its {name} differs from {folder}'s, so its encoder was not trained for this "
                              "prior (train it with [train] encoder_for)")
     with atomic_path(folder / "shape.safetensors") as tmp:
         save_file(_tensors(trained, INFERENCE_NETWORKS["shape"], "shape"), tmp)
-    card["shape"] = {**_run_facts(Path(run)), "decoder_and_G_latent": card["shape"]}
-    card["files"]["shape.safetensors"] = {"bytes": (folder / "shape.safetensors").stat().st_size,
-                                          "sha256": _sha256(folder / "shape.safetensors")}
+    if is_run:
+        card["shape"] = {**_run_facts(Path(source)), "decoder_and_G_latent": card["shape"]}
+    elif resolve(source).resolve() != folder.resolve():
+        card["shape"] = {**json.loads((resolve(source) / "card.json").read_text())["shape"], "encoder_from": str(source)}
+    card["files"]["shape.safetensors"] = _file_facts(folder / "shape.safetensors")
     write_json(folder / "card.json", card)
     return folder
 
@@ -166,7 +188,8 @@ def _shape_networks(has_encoder: bool) -> tuple[str, ...]:
 
 
 def _load_into(model: Any, tensors: dict[str, torch.Tensor], prefix: str, names: tuple[str, ...], file: Path) -> None:
-    own = {key[len(prefix) + 1:]: value for key, value in tensors.items() if key.startswith(f"{prefix}.")}
+    own = {key[len(prefix) + 1:]: value.float() if value.dtype == torch.float16 else value  # HALF_PRECISION
+           for key, value in tensors.items() if key.startswith(f"{prefix}.")}
     load_weights({name: getattr(model, name) for name in names}, own, file)
 
 
@@ -207,6 +230,18 @@ def load_shape_prior(run_or_model: str | Path) -> ShapeModel:
             raise ValueError(f"{run_or_model}: no `train shape` checkpoint yet")
         return model
     return load_shape(run_or_model)
+
+
+def load_map_networks(run_or_model: str | Path) -> tuple[MapsModel, str]:
+    """The map networks of a ``train maps`` run's newest checkpoint or of a model folder / shipped
+    name, and what they are (the checkpoint's path, or the folder's)."""
+    if (Path(run_or_model) / "recipe.json").exists():
+        model = MapsModel.from_run(run_or_model)
+        if model is None:
+            raise ValueError(f"{run_or_model}: no `train maps` checkpoint yet")
+        return model, str(newest_checkpoint(run_or_model))
+    maps, *_ = load_model(run_or_model)
+    return maps, str(resolve(run_or_model))
 
 
 def coarse_shapes(run_or_model: str | Path, resolution: int) -> CoarseShapes:

@@ -56,6 +56,9 @@ from ngp_mi.training.recipe import from_table, out_override, positive, read_tabl
 from ngp_mi.viz import contact_sheet, save_png
 
 TABLES = ("data", "model", "train", "specular")
+# Runs started together on one data cache (recipe arms side by side): the first renders it, the others
+# wait for it this long (seconds) and then find it complete, instead of failing on its lock.
+CACHE_WAIT_SECONDS = 3 * 3600
 
 
 @dataclasses.dataclass(frozen=True)
@@ -136,7 +139,7 @@ def prepare_data(data: MapsData, rank: int) -> tuple[Path, Path]:
         config = DatasetConfig(source=data.source, num_shapes=data.num_shapes, views=data.views,
                                resolution=data.resolution, channels=("depth", "normal", "albedo", "noc", "mask"),
                                seed=data.seed)
-        render_dataset(config, cache, progress=False)
+        render_dataset(config, cache, progress=False, wait=CACHE_WAIT_SECONDS)
         if data.coarse_shapes:  # the paper decorates G_shape's coarse shapes, not the detailed ones
             try:
                 reconstruct = pretrained.coarse_shapes(data.coarse_shapes, data.coarse_resolution)
@@ -144,7 +147,8 @@ def prepare_data(data: MapsData, rank: int) -> tuple[Path, Path]:
                 raise ValueError(f"[data] coarse_shapes = {data.coarse_shapes!r}: {error}") from error
             coarse = dataclasses.replace(config, channels=("depth", "mask"), coarse_shapes=data.coarse_shapes,
                                          coarse_resolution=data.coarse_resolution)
-            render_dataset(coarse, depth_cache, progress=False, reconstruct=reconstruct)
+            render_dataset(coarse, depth_cache, progress=False, reconstruct=reconstruct,
+                           wait=CACHE_WAIT_SECONDS)
     loop.barrier()
     return cache, depth_cache
 
@@ -179,7 +183,7 @@ def prepare_real_images(data: MapsData, stage: SpecularStage, rank: int) -> Path
     if rank == 0:
         render_dataset(DatasetConfig(source=data.source, num_shapes=stage.num_shapes, views=stage.views,
                                      resolution=data.resolution, channels=("mask",), real_spp=stage.real_spp,
-                                     seed=data.seed + 1), cache, progress=False)
+                                     seed=data.seed + 1), cache, progress=False, wait=CACHE_WAIT_SECONDS)
     loop.barrier()
     return cache
 

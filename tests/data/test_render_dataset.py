@@ -346,6 +346,32 @@ def test_one_job_at_a_time_writes_a_shard(tmp_path, monkeypatch):
     assert run(tmp_path, views=1, resolution=16)["views_rendered"] == 1  # released: shard 0 of 1 renders the missing view
 
 
+def test_a_job_told_to_wait_renders_once_the_holder_is_done(tmp_path, capsys):
+    """Training caches pass ``wait``: a job started beside another one on the same folder waits for it
+    (saying whom it waits for) instead of failing; past its wait it fails as the CLI does."""
+    import threading
+
+    from ngp_mi import lock
+
+    held, release = threading.Event(), threading.Event()
+
+    def holder():
+        with lock.exclusive(tmp_path / "render-dataset.lock", "a test"):
+            held.set()
+            release.wait(10)
+
+    thread = threading.Thread(target=holder)
+    thread.start()
+    held.wait(10)
+    config = DatasetConfig(source="chair", num_shapes=1, views=1, resolution=16)
+    with pytest.raises(lock.Busy, match="is being written by"):
+        render_dataset(config, tmp_path, progress=False, wait=0.3)
+    threading.Timer(1.0, release.set).start()
+    assert render_dataset(config, tmp_path, progress=False, wait=30)["views_rendered"] == 1
+    thread.join()
+    assert "waiting up to 30 s" in capsys.readouterr().err
+
+
 def test_killing_the_job_stops_its_workers_and_a_rerun_renders_each_view_once(tmp_path):
     cli = [sys.executable, "-m", "ngp_mi.cli", "render-dataset", "--source", "chair", "--num-shapes", "12",
            "--views", "8", "--res", "48", "--real-spp", "64", "--workers", "2", "--quiet", "--out", str(tmp_path)]

@@ -100,3 +100,21 @@ def test_the_albedo_baselines_are_what_they_say():
     errors = single_colour_l1(albedo, mask)
     assert errors.shape == (8,) and float(errors[:4].max()) == 0 and float(errors[4:].sum()) == pytest.approx(1 / 3)
     torch.testing.assert_close(mean_colour(albedo, mask)[1], torch.tensor([0.75, 0.0, 0.0]))
+
+
+def test_a_model_folder_is_evaluated_as_the_run_it_was_exported_from(trained, tmp_path):
+    """`evaluate maps --run` takes a model folder (or a shipped name): the same networks, the same figures;
+    a folder that is neither is refused by name."""
+    from ngp_mi.cli import main
+    from ngp_mi.models.pretrained import export_model
+
+    run, data = trained
+    folder = export_model(tmp_path / "model", run)
+    from_run = evaluate_maps(run, data, tmp_path / "a", latent_samples=2)
+    from_folder = evaluate_maps(folder, data, tmp_path / "b", latent_samples=2)
+    assert from_folder.pop("checkpoint") == str(folder) and "ckpt-" in from_run.pop("checkpoint")
+    assert from_folder == from_run
+    with pytest.raises(ValueError, match="'nowhere': not a shipped model"):
+        evaluate_maps("nowhere", data, tmp_path / "c")
+    assert main(["evaluate", "maps", "--run", str(folder), "--data", str(data), "--out", str(tmp_path / "d")]) == 0
+    assert (tmp_path / "d" / "eval.json").exists()

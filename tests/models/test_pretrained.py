@@ -115,6 +115,8 @@ def test_the_shipped_models_load_with_their_cards_within_the_size_budget():
     for name in available():
         maps, specular, shape, card = load_model(name)
         assert card["family"] == name and specular is not None and shape is not None
+        # every shipped prior reconstructs a given shape (--coarse-shapes NAME): its encoder is there, in float16
+        assert shape.has_encoder and card["files"]["shape.safetensors"]["float16"] == ["shape.encoder"]
         assert card["maps"]["steps"] > 0 and card["shape"]["steps"] > 0 and card["maps"]["training_seconds"] > 0
         assert "normal_error_deg" in card["maps"]["figures"]["eval/eval.json"]
         assert card["maps"]["recipe"]["data"]["source"] == name

@@ -92,7 +92,23 @@ def test_an_encoder_is_trained_for_a_prior_exported_without_one(tiny_model, tiny
     assert main(["export-model", "--add-encoder", str(run), "--out", str(patched)]) == 0
     *_, shape, card = load_model(patched)  # sha256s checked
     assert shape.has_encoder and card["shape"]["decoder_and_G_latent"]["steps"] > 0
-    assert torch.equal(shape.encode(data.all_voxels()[:2]), trained.encode(data.all_voxels()[:2]))
+    # the encoder is stored in float16 (HALF_PRECISION): exactly the run's weights rounded, nothing else changed
+    assert card["files"]["shape.safetensors"]["float16"] == ["shape.encoder"]
+    stored = load_file(patched / "shape.safetensors")
+    assert all((v.dtype == torch.float16) == k.startswith("shape.encoder.") for k, v in stored.items() if v.is_floating_point())
+    rounded = ShapeModel(trained.config)
+    rounded.load_state_dict(trained.state_dict())
+    rounded.encoder.load_state_dict({k: v.half().float() if v.is_floating_point() else v
+                                     for k, v in trained.encoder.state_dict().items()})
+    voxels = data.all_voxels()[:2]
+    assert torch.equal(shape.encode(voxels), rounded.encode(voxels))
+    assert not torch.equal(shape.encode(voxels), trained.encode(voxels))
+    assert torch.allclose(shape.encode(voxels), trained.encode(voxels), rtol=1e-2, atol=1e-2)
+    # the folder itself as the source re-writes it unchanged (already rounded); its card keeps its facts
+    before = dict(card["shape"])
+    assert main(["export-model", "--add-encoder", str(patched), "--out", str(patched)]) == 0
+    *_, again, card = load_model(patched)
+    assert card["shape"] == before and torch.equal(again.encode(voxels), shape.encode(voxels))
     other = without_encoder(tiny_model, tmp_path / "other")
     tensors = load_file(other / "shape.safetensors")
     key = next(k for k in tensors if k.startswith("shape.decoder."))
