@@ -529,19 +529,20 @@ def evaluate_flags(p: argparse.ArgumentParser) -> None:
 
 
 def evaluate(args: argparse.Namespace) -> int:
+    from ngp_mi.models.pretrained import is_training_run
+
+    # beside a run's checkpoints; a model's (shipped or a folder) under outputs/
+    out = args.out or (f"{args.run}/{'eval-shape' if args.stage == 'shape' else 'eval'}" if is_training_run(args.run)
+                       else f"outputs/eval-{args.stage}/{Path(args.run).name}")
     if args.stage == "shape":
         from ngp_mi.eval.shape_eval import evaluate_shape
 
-        out = args.out or (f"{args.run}/eval-shape" if (Path(args.run) / "recipe.json").exists()
-                           else f"outputs/eval-shape/{Path(args.run).name}")
         evaluate_shape(args.run, out, args.source, args.num_shapes, args.seed, args.res)
         return 0
     from ngp_mi.eval.maps_eval import evaluate_maps
 
     if not args.data:
         raise ValueError("evaluate maps: --data (a held-out render-dataset folder) is required")
-    out = args.out or (f"{args.run}/eval" if (Path(args.run) / "recipe.json").exists()
-                       else f"outputs/eval-maps/{Path(args.run).name}")
     result = evaluate_maps(args.run, args.data, out, coarse_sigma=args.coarse_sigma,
                            coarse_data=args.coarse_data)
     print(json.dumps(result, indent=1))

@@ -163,7 +163,6 @@ def add_encoder(folder: str | Path, source: str | Path) -> Path:
     card = json.loads((folder / "card.json").read_text())
     if "shape" not in card["configs"]:
         raise ValueError(f"{folder}: this model ships no shape prior to add an encoder to")
-    is_run = (Path(source) / "recipe.json").exists()
     kept, trained = _shape_of(folder, card["configs"]), load_shape_prior(source)
     trained.require_encoder()
     for name in ("decoder", "G_latent"):
@@ -173,7 +172,7 @@ def add_encoder(folder: str | Path, source: str | Path) -> Path:
                              "prior (train it with [train] encoder_for)")
     with atomic_path(folder / "shape.safetensors") as tmp:
         save_file(_tensors(trained, INFERENCE_NETWORKS["shape"], "shape"), tmp)
-    if is_run:
+    if is_training_run(source):
         card["shape"] = {**_run_facts(Path(source)), "decoder_and_G_latent": card["shape"]}
     elif resolve(source).resolve() != folder.resolve():
         card["shape"] = {**json.loads((resolve(source) / "card.json").read_text())["shape"], "encoder_from": str(source)}
@@ -222,9 +221,15 @@ def _shape_of(folder: Path, configs: dict[str, Any]) -> ShapeModel:
     return shape.eval()
 
 
+def is_training_run(path: str | Path) -> bool:
+    """Whether ``path`` is a ``train maps`` / ``train shape`` output folder (it holds ``recipe.json``)
+    rather than a model folder or a shipped name."""
+    return (Path(path) / "recipe.json").exists()
+
+
 def load_shape_prior(run_or_model: str | Path) -> ShapeModel:
-    """G_shape of a ``train shape`` run (a folder with ``recipe.json``) or of a model folder / shipped name."""
-    if (Path(run_or_model) / "recipe.json").exists():
+    """G_shape of a ``train shape`` run or of a model folder / shipped name."""
+    if is_training_run(run_or_model):
         model = ShapeModel.from_run(run_or_model)
         if model is None:
             raise ValueError(f"{run_or_model}: no `train shape` checkpoint yet")
@@ -235,7 +240,7 @@ def load_shape_prior(run_or_model: str | Path) -> ShapeModel:
 def load_map_networks(run_or_model: str | Path) -> tuple[MapsModel, str]:
     """The map networks of a ``train maps`` run's newest checkpoint or of a model folder / shipped
     name, and what they are (the checkpoint's path, or the folder's)."""
-    if (Path(run_or_model) / "recipe.json").exists():
+    if is_training_run(run_or_model):
         model = MapsModel.from_run(run_or_model)
         if model is None:
             raise ValueError(f"{run_or_model}: no `train maps` checkpoint yet")
