@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-from typing import Any
+from typing import Any, Sequence
 
 import torch
 from torch import nn
@@ -36,6 +36,7 @@ from ngp_mi.render.shading import DEFAULT, CameraLights, Constants, shade
 
 DEPTH_CENTER, DEPTH_SCALE, MASK_THRESHOLD = 2.0, 0.6, -0.97
 NORMAL_CYCLE_DEPTHS = ("generated", "real", "coarse")
+PAIRED_DEPTHS = ("real", "coarse")  # depths of the same shape and view as the real normals
 NORMAL_INPUTS = ("depth", "depth+normals")
 GENERATORS = ("G_n", "G_da", "G_depth", "E_da")
 
@@ -118,7 +119,20 @@ class MapsConfig:
     # with the real normals (normal_cycle_depth "real" / "coarse"), its L1 is supervision, and the
     # adversarial term only adds the noise of a young discriminator's opinion.
     lambda_gan_n: float = 1.0
+    # G_n's updates per iteration: the joint step, then ``normal_steps`` − 1 steps of G_n alone on
+    # λ_n L_n^cyc of further maps batches, G_n reading their own depth ("real") or their shape's
+    # reconstruction ("coarse", [data] coarse_shapes) as ``normal_steps_depth`` says — the pairing of
+    # normal_cycle_depth "real" / "coarse", which the joint step may or may not use (the number of
+    # critic steps per generator step of WGAN, turned round: G_n learns from a paired signal for a
+    # fraction of an iteration's cost). 1: the paper's. See :meth:`MapsModel.optimize_normals`.
+    normal_steps: int = 1
+    normal_steps_depth: str = "real"
     lambdas: tuple[tuple[str, float], ...] = tuple(losses.LAMBDAS.items())
+
+    @property
+    def reads_coarse_pairs(self) -> bool:
+        """Whether training needs each real view's coarse reconstruction ([data] coarse_shapes)."""
+        return self.normal_cycle_depth == "coarse" or (self.normal_steps > 1 and self.normal_steps_depth == "coarse")
 
     def __post_init__(self) -> None:
         if self.albedo_head not in ("image", "palette"):
@@ -141,6 +155,10 @@ class MapsConfig:
                              f"got {self.normal_cycle_agreement!r}")
         if not 0 <= self.lambda_gan_n <= 100:
             raise ValueError(f"lambda_gan_n must lie in [0, 100], got {self.lambda_gan_n!r}")
+        if not 1 <= self.normal_steps <= 32:
+            raise ValueError(f"normal_steps must lie in [1, 32], got {self.normal_steps!r}")
+        if self.normal_steps_depth not in PAIRED_DEPTHS:
+            raise ValueError(f"normal_steps_depth must be one of {PAIRED_DEPTHS}, got {self.normal_steps_depth!r}")
         if not 0 <= self.ema < 1:
             raise ValueError(f"ema must lie in [0, 1), got {self.ema!r}")
         if self.albedo_cycle_noc not in ("generated", "real"):
@@ -358,19 +376,20 @@ class MapsModel(BaseModel):
             "kl": losses.kl_loss(mu, logvar),
         }
 
-    def normal_cycle_input(self, depth_g_net: torch.Tensor, maps_batch: dict[str, Any]) -> torch.Tensor:
+    def normal_cycle_input(self, depth_g_net: torch.Tensor | None, maps_batch: dict[str, Any],
+                           source: str | None = None) -> torch.Tensor:
         """The depth (network range) G_n reads in the normal cycle L_n^cyc: G_depth's depth of the real
         diffuse image ``depth_g_net`` (the paper's), or the real maps' own depth or their shape's
-        coarse reconstruction (``normal_cycle_depth``); blurred by ``normal_cycle_blur``."""
-        source = self.config.normal_cycle_depth
+        coarse reconstruction (``source``, default ``normal_cycle_depth``); blurred by ``normal_cycle_blur``."""
+        source = source or self.config.normal_cycle_depth
         if source == "generated":
             depth, mask = net_to_depth(depth_g_net)
         elif source == "real":
             depth, mask = maps_batch["depth"], maps_batch["mask"]
         else:
             if "coarse_depth" not in maps_batch:
-                raise ValueError("normal_cycle_depth = 'coarse' needs the real maps' coarse depth: set [data] "
-                                 "coarse_shapes (a `train shape` run or a model) in the recipe")
+                raise ValueError("normal_cycle_depth / normal_steps_depth = 'coarse' needs the real maps' coarse "
+                                 "depth: set [data] coarse_shapes (a `train shape` run or a model) in the recipe")
             depth, mask = maps_batch["coarse_depth"], maps_batch["coarse_mask"]
         if self.config.normal_cycle_blur > 0:
             depth = coarsen_depth(depth, mask, self.config.normal_cycle_blur)
@@ -394,8 +413,11 @@ class MapsModel(BaseModel):
                     ("normal", "albedo", "diffuse", "depth", "noc"))
         return sum(losses.discriminator_loss(D, *self._for_d[name]) for D, name in pairs)
 
-    def optimize(self, depth_batch: dict[str, Any], maps_batch: dict[str, Any]) -> dict[str, float]:
-        """One step: generators and E_da on L_2D (discriminators frozen), then the discriminators."""
+    def optimize(self, depth_batch: dict[str, Any], maps_batch: dict[str, Any],
+                 normal_batches: Sequence[dict[str, Any]] = ()) -> dict[str, float]:
+        """One step: generators and E_da on L_2D (discriminators frozen), then the discriminators;
+        then G_n alone on each of ``normal_batches`` (``normal_steps`` − 1 further maps batches,
+        :meth:`optimize_normals`), whose mean loss is ``cyc_n_alone``."""
         for D in self.discriminators:
             D.requires_grad_(False)
         terms = self(depth_batch, maps_batch)
@@ -406,4 +428,19 @@ class MapsModel(BaseModel):
             D.requires_grad_(True)
         loss_D = self.discriminator_terms()
         self.optimizer_step(self.opt_D, loss_D)
-        return {**{k: v.item() for k, v in terms.items()}, "G": loss_G.item(), "D": loss_D.item()}
+        result = {**{k: v.item() for k, v in terms.items()}, "G": loss_G.item(), "D": loss_D.item()}
+        if normal_batches:
+            result["cyc_n_alone"] = sum(map(self.optimize_normals, normal_batches)) / len(normal_batches)
+        return result
+
+    def optimize_normals(self, maps_batch: dict[str, Any]) -> float:
+        """One of the ``normal_steps`` − 1 extra steps of G_n alone: λ_n L_n^cyc of G_n on the paired
+        input of ``normal_steps_depth`` (:meth:`normal_cycle_input`) against the real normals, the
+        discriminators and the other generators untouched. Returns the loss."""
+        depth_in = self.normal_cycle_input(None, maps_batch, self.config.normal_steps_depth)
+        normal = self.generate_normals(depth_in, cameras_of(maps_batch))
+        loss = dict(self.config.lambdas)["n"] * losses.normal_cycle_loss(
+            normal, maps_batch["normal"], self.normal_cycle_agreement(depth_in, maps_batch))
+        # opt_G's other parameters get no gradient (set to None), so Adam leaves them and their moments alone
+        self.optimizer_step(self.opt_G, loss)
+        return loss.item()

@@ -45,7 +45,8 @@ from ngp_mi.models.maps import MapsModel
 from ngp_mi.models.shape import ShapeModel, occupancy_loss
 from ngp_mi.render.depth import depth_of_hits, project_depth
 from ngp_mi.training import loop
-from ngp_mi.training.maps import MapsData, image_grid, maps_dataset, prepare_data, require_coarse_pairs
+from ngp_mi.training.maps import (MapsData, image_grid, maps_dataset, normal_step_batches, prepare_data,
+                                  require_coarse_pairs)
 from ngp_mi.training.recipe import from_table, out_override, positive, read_tables, record
 from ngp_mi.training.shape import ae_batch, run_shape_data
 from ngp_mi.viz import save_png
@@ -184,14 +185,15 @@ def train_e2e(config_path: str | Path, log=print, out: str | Path | None = None,
         if loaded is None:
             raise ValueError(f"[init] {run}: no readable checkpoint (train it first)")
     # G_shape's own shapes are the depth to decorate; coarse reconstructions only pair the real maps
-    # for a G_n trained with normal_cycle_depth = "coarse".
-    data = recipe.data if model.config.normal_cycle_depth == "coarse" else dataclasses.replace(recipe.data,
+    # for a G_n trained with normal_cycle_depth (or normal_steps_depth) = "coarse".
+    data = recipe.data if model.config.reads_coarse_pairs else dataclasses.replace(recipe.data,
                                                                                                coarse_shapes=None)
     require_coarse_pairs(model.config, data)  # before any rendering
     maps_root, coarse_root = prepare_data(data, rank)
     maps_batches = loop.SeededBatches(maps_dataset(model.config, data, maps_root, coarse_root,
                                                    log if rank == 0 else None),
                                       train.batch_size, train.seed, rank, world)
+    normal_batches = loop.SeededBatches(maps_batches.dataset, train.batch_size, train.seed + 3 * 10 ** 6, rank, world)
     model.train()
     for network in (shape.encoder, shape.G_latent, shape.D_latent):
         network.requires_grad_(False)
@@ -224,7 +226,8 @@ def train_e2e(config_path: str | Path, log=print, out: str | Path | None = None,
         depth_batch, empty_now = shape_depth_batch(shape, train.batch_size, recipe.data.resolution,
                                                    derived_seed(train.seed, step * world + rank), train.link, train)
         empty += empty_now
-        losses = model.optimize(loop.to_device(depth_batch, device), loop.to_device(maps_batches(step), device))
+        losses = model.optimize(loop.to_device(depth_batch, device), loop.to_device(maps_batches(step), device),
+                                normal_step_batches(normal_batches, model.config, step, device))
         if anchor is not None:
             losses["anchor_occupancy"] = anchor.backward(shape, step)
         if train.link and not _decoder_step(shape, world):

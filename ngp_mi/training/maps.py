@@ -154,18 +154,21 @@ def prepare_data(data: MapsData, rank: int) -> tuple[Path, Path]:
 
 
 def require_coarse_pairs(model: MapsConfig, data: MapsData) -> None:
-    """``normal_cycle_depth = "coarse"`` needs the real maps' reconstructions: ``[data] coarse_shapes``."""
-    if model.normal_cycle_depth == "coarse" and data.coarse_shapes is None:
-        raise ValueError("[model] normal_cycle_depth = 'coarse' reads the real maps' coarse reconstructions: "
+    """``normal_cycle_depth`` or ``normal_steps_depth = "coarse"`` needs the real maps' reconstructions:
+    ``[data] coarse_shapes``."""
+    if model.reads_coarse_pairs and data.coarse_shapes is None:
+        key = "normal_cycle_depth" if model.normal_cycle_depth == "coarse" else "normal_steps_depth"
+        raise ValueError(f"[model] {key} = 'coarse' reads the real maps' coarse reconstructions: "
                          "set [data] coarse_shapes (a `train shape` run or a model such as \"chair\")")
 
 
 def maps_dataset(model: MapsConfig, data: MapsData, maps_root: Path, depth_root: Path,
                  log: Callable[[str], None] | None = None) -> ReflectanceMapDataset | WithCoarseDepth:
-    """The real maps; with ``normal_cycle_depth = "coarse"``, each view with its shape's coarse depth
-    (the ``[data] coarse_shapes`` folder; views of a shape without a reconstruction are left out)."""
+    """The real maps; with ``normal_cycle_depth`` or ``normal_steps_depth = "coarse"``, each view with its
+    shape's coarse depth (the ``[data] coarse_shapes`` folder; views of a shape without a reconstruction
+    are left out)."""
     maps = ReflectanceMapDataset(maps_root)
-    if model.normal_cycle_depth != "coarse":
+    if not model.reads_coarse_pairs:
         return maps
     require_coarse_pairs(model, data)
     paired = WithCoarseDepth(maps, depth_root, drop_unpaired=True)
@@ -173,6 +176,14 @@ def maps_dataset(model: MapsConfig, data: MapsData, maps_root: Path, depth_root:
         log(f"train maps: {paired.dropped} of {len(maps)} real views have no coarse view in {depth_root} "
             "(empty reconstruction) and are left out")
     return paired
+
+
+def normal_step_batches(batches: loop.SeededBatches, model: MapsConfig, step: int,
+                        device: torch.device | None = None) -> list[dict[str, Any]]:
+    """The maps batches of G_n's own steps at ``step`` (``[model] normal_steps`` − 1 of them): a
+    function of the step, so a resumed run repeats them."""
+    extra = model.normal_steps - 1
+    return [loop.to_device(batches(step * extra + j), device or torch.device("cpu")) for j in range(extra)]
 
 
 def prepare_real_images(data: MapsData, stage: SpecularStage, rank: int) -> Path:
@@ -244,6 +255,7 @@ def train_maps(config_path: str | Path, log=print, out: str | Path | None = None
     maps = maps_dataset(recipe.model, recipe.data, maps_root, depth_root, log if rank == 0 else None)
     maps_batches = loop.SeededBatches(maps, train.batch_size, train.seed, rank, world)
     depth_batches = loop.SeededBatches(DepthDataset(depth_root), train.batch_size, train.seed + 10 ** 6, rank, world)
+    normal_batches = loop.SeededBatches(maps, train.batch_size, train.seed + 3 * 10 ** 6, rank, world)
 
     torch.manual_seed(train.seed)  # identical initial weights on every rank
     model = MapsModel(recipe.model).to(device)  # in place: the optimisers keep their parameters
@@ -279,7 +291,8 @@ def train_maps(config_path: str | Path, log=print, out: str | Path | None = None
         model.train(step < maps_iterations)
         if step < maps_iterations:
             stage, visuals = "maps", model
-            losses = model.optimize(depth_batch, loop.to_device(maps_batches(step), device))
+            losses = model.optimize(depth_batch, loop.to_device(maps_batches(step), device),
+                                    normal_step_batches(normal_batches, model.config, step, device))
         else:
             stage, visuals = "specular", specular
             exemplars = (loop.to_device(maps_batches(step), device)

@@ -277,3 +277,57 @@ def test_with_normal_input_g_n_reads_the_depths_own_normals_beside_it(loaders):
     assert all(math.isfinite(v) for step in history for v in step.values())
     with pytest.raises(ValueError, match="normal_input"):
         dataclasses.replace(TINY, normal_input="normals")
+
+
+def test_normal_steps_move_g_n_alone_on_the_paired_normal_cycle(loaders):
+    """[model] normal_steps: an extra step trains G_n alone on λ_n L_n^cyc of the paired input (the
+    real depth here) — the other generators, the discriminators and their Adam moments untouched —
+    and its loss is λ_n times the L1 of G_n's normals against the real ones; "generated" pairing is
+    refused, since its input is G_depth's."""
+    torch.manual_seed(11)
+    model = MapsModel(dataclasses.replace(TINY, normal_residual=True, normal_cycle_depth="real", normal_steps=3))
+    depth, maps = next(zip(*loaders))
+    model.optimize(depth, maps)  # every parameter has Adam moments now
+    others = [p for name in ("G_da", "G_depth", "E_da", "D_n", "D_da") for p in getattr(model, name).parameters()]
+    before = [p.detach().clone() for p in others]
+    moments = [model.opt_G.state[p]["exp_avg"].clone() for name in ("G_da", "G_depth", "E_da")
+               for p in getattr(model, name).parameters()]
+    g_n = [p.detach().clone() for p in model.G_n.parameters()]
+    with torch.no_grad():
+        expected = 25.0 * (model.generate_normals(depth_to_net(maps["depth"], maps["mask"]), cameras_of(maps))
+                           - maps["normal"]).abs().mean()
+    history = [model.optimize_normals(maps) for _ in range(30)]  # Adam carries the joint step's moments a few steps
+    assert history[0] == pytest.approx(expected.item(), rel=1e-5)
+    assert all(math.isfinite(v) for v in history) and history[-1] < history[0]
+    assert any(not torch.equal(a, b) for a, b in zip(g_n, model.G_n.parameters()))
+    assert all(torch.equal(a, b) for a, b in zip(before, others))
+    after = [model.opt_G.state[p]["exp_avg"] for name in ("G_da", "G_depth", "E_da")
+             for p in getattr(model, name).parameters()]
+    assert all(torch.equal(a, b) for a, b in zip(moments, after))
+    result = model.optimize(depth, maps, [maps, maps])
+    assert set(result) == {*MapsModel.loss_names, "cyc_n_alone"} and math.isfinite(result["cyc_n_alone"])
+    with pytest.raises(ValueError, match="normal_steps_depth must be one of"):
+        dataclasses.replace(TINY, normal_steps=2, normal_steps_depth="generated")
+    with pytest.raises(ValueError, match=r"normal_steps must lie in \[1, 32\]"):
+        dataclasses.replace(TINY, normal_steps=0)
+
+
+def test_normal_steps_on_the_reconstructions_beside_the_papers_cycle(loaders):
+    """normal_steps_depth = "coarse" with the paper's normal cycle: G_n's own steps read the real
+    views' coarse depth (what ``reads_coarse_pairs`` asks training to load), the joint step G_depth's."""
+    from ngp_mi.models.maps import smooth_depth
+
+    torch.manual_seed(12)
+    config = dataclasses.replace(TINY, normal_residual=True, normal_steps=2, normal_steps_depth="coarse")
+    assert config.reads_coarse_pairs and not dataclasses.replace(config, normal_steps=1).reads_coarse_pairs
+    model = MapsModel(config)
+    depth, maps = next(zip(*loaders))
+    coarse = smooth_depth(maps["depth"], maps["mask"], 2.0)
+    paired = {**maps, "coarse_depth": coarse, "coarse_mask": maps["mask"]}
+    with torch.no_grad():
+        expected = 25.0 * (model.generate_normals(depth_to_net(coarse, maps["mask"]), cameras_of(maps))
+                           - maps["normal"]).abs().mean()
+    assert model.optimize_normals(paired) == pytest.approx(expected.item(), rel=1e-5)
+    assert math.isfinite(model.optimize(depth, maps, [paired])["cyc_n_alone"])
+    with pytest.raises(ValueError, match="needs the real maps' coarse depth"):
+        model.optimize_normals(maps)

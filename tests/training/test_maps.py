@@ -161,3 +161,26 @@ def test_the_normal_cycle_on_the_real_maps_coarse_reconstructions_trains(tmp_pat
     maps_steps = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     maps_steps = [s for s in maps_steps if s["stage"] == "maps"]
     assert [s["step"] for s in maps_steps] == [1, 2] and all(math.isfinite(s["cyc_n"]) for s in maps_steps)
+
+
+def test_normal_steps_log_g_ns_own_loss_and_resume_exactly(tmp_path):
+    """[model] normal_steps = 3: each map step logs the mean of G_n's two extra steps (cyc_n_alone), and
+    a run killed after step 2 and resumed ends with the straight run's weights (the extra batches
+    are a function of the step)."""
+    overrides = ['model.normal_cycle_depth="real"', "model.normal_steps=3"]
+    straight = train_maps(maps_recipe(tmp_path, "straight", iterations=4, device='"cpu"'), log=lambda *_: None,
+                          overrides=overrides)
+    records = [json.loads(line) for line in (straight / "log.jsonl").read_text().splitlines()]
+    maps_records = [r for r in records if r["stage"] == "maps"]
+    assert len(maps_records) == 4 and all(math.isfinite(r["cyc_n_alone"]) and r["cyc_n_alone"] > 0
+                                          for r in maps_records)
+    text = maps_recipe(tmp_path, "resumed", iterations=4, device='"cpu"').read_text()
+    (tmp_path / "cut.toml").write_text(text[:text.index("[specular]")].replace("iterations = 4", "iterations = 2"))
+    train_maps(tmp_path / "cut.toml", log=lambda *_: None, overrides=overrides)
+    resumed = train_maps(maps_recipe(tmp_path, "resumed", iterations=4, device='"cpu"'), log=lambda *_: None,
+                         overrides=overrides)
+    a, b = weights(straight), weights(resumed)
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    with pytest.raises(ValueError, match=r"normal_steps_depth = 'coarse' .* set \[data\] coarse_shapes"):
+        train_maps(maps_recipe(tmp_path, "coarse", iterations=1, device='"cpu"'), log=lambda *_: None,
+                   overrides=["model.normal_steps=2", 'model.normal_steps_depth="coarse"'])
