@@ -28,7 +28,7 @@ from ngp_mi.data.datasets import DepthDataset, ReflectanceMapDataset
 from ngp_mi.data.render_dataset import DatasetConfig, render_dataset
 from ngp_mi.models.maps import MapsModel
 from ngp_mi.training.loop import SeededBatches
-from ngp_mi.training.maps import MapsRecipe, normal_step_batches
+from ngp_mi.training.maps import MapsRecipe, normal_step_batches, normal_step_source
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -44,8 +44,9 @@ def versus(base: MapsRecipe, other: MapsRecipe, args: argparse.Namespace, b) -> 
     """The two recipes' iterations at 64², interleaved; medians and ratio."""
     with tempfile.TemporaryDirectory() as tmp:
         render_dataset(DatasetConfig(source="chair", num_shapes=8, views=4, resolution=64), Path(tmp), progress=False)
-        batches = [SeededBatches(ReflectanceMapDataset(tmp), args.batch, 0), SeededBatches(DepthDataset(tmp), args.batch, 1),
-                   SeededBatches(ReflectanceMapDataset(tmp), args.batch, 2)]
+        maps = SeededBatches(ReflectanceMapDataset(tmp), args.batch, 0)
+        depth = SeededBatches(DepthDataset(tmp), args.batch, 1)
+        extra = normal_step_source(ReflectanceMapDataset(tmp), args.batch, 0)
         models = []
         for recipe in (base, other):
             torch.manual_seed(0)
@@ -53,7 +54,7 @@ def versus(base: MapsRecipe, other: MapsRecipe, args: argparse.Namespace, b) -> 
         times = [[], []]
         for step in range(args.iterations + 1):
             for model, spent in zip(models, times):
-                spent.append(steps(model, batches[1], batches[0], batches[2], step))
+                spent.append(steps(model, depth, maps, extra, step))
     a, c = (statistics.median(t[1:]) for t in times)
     print(f"# bench_train_maps --versus — {time.strftime('%Y-%m-%d')}, {platform.machine()}, torch {torch.__version__} "
           f"({torch.get_num_threads()} threads), {b.variant}; preset cpu, 64², batch {args.batch}, "

@@ -45,8 +45,8 @@ from ngp_mi.models.maps import MapsModel
 from ngp_mi.models.shape import ShapeModel, occupancy_loss
 from ngp_mi.render.depth import depth_of_hits, project_depth
 from ngp_mi.training import loop
-from ngp_mi.training.maps import (MapsData, image_grid, maps_dataset, normal_step_batches, prepare_data,
-                                  require_coarse_pairs)
+from ngp_mi.training.maps import (MapsData, image_grid, maps_dataset, normal_step_batches, normal_step_source,
+                                  prepare_data, require_coarse_pairs)
 from ngp_mi.training.recipe import from_table, out_override, positive, read_tables, record
 from ngp_mi.training.shape import ae_batch, run_shape_data
 from ngp_mi.viz import save_png
@@ -193,7 +193,7 @@ def train_e2e(config_path: str | Path, log=print, out: str | Path | None = None,
     maps_batches = loop.SeededBatches(maps_dataset(model.config, data, maps_root, coarse_root,
                                                    log if rank == 0 else None),
                                       train.batch_size, train.seed, rank, world)
-    normal_batches = loop.SeededBatches(maps_batches.dataset, train.batch_size, train.seed + 3 * 10 ** 6, rank, world)
+    normal_batches = normal_step_source(maps_batches.dataset, train.batch_size, train.seed, rank, world)
     model.train()
     for network in (shape.encoder, shape.G_latent, shape.D_latent):
         network.requires_grad_(False)

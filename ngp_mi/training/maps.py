@@ -178,6 +178,11 @@ def maps_dataset(model: MapsConfig, data: MapsData, maps_root: Path, depth_root:
     return paired
 
 
+def normal_step_source(maps: Any, batch_size: int, seed: int, rank: int = 0, world: int = 1) -> loop.SeededBatches:
+    """What G_n's own steps (``[model] normal_steps``) draw from: the real maps in an order of their own."""
+    return loop.SeededBatches(maps, batch_size, seed + 3 * 10 ** 6, rank, world)
+
+
 def normal_step_batches(batches: loop.SeededBatches, model: MapsConfig, step: int,
                         device: torch.device | None = None) -> list[dict[str, Any]]:
     """The maps batches of G_n's own steps at ``step`` (``[model] normal_steps`` − 1 of them): a
@@ -255,7 +260,7 @@ def train_maps(config_path: str | Path, log=print, out: str | Path | None = None
     maps = maps_dataset(recipe.model, recipe.data, maps_root, depth_root, log if rank == 0 else None)
     maps_batches = loop.SeededBatches(maps, train.batch_size, train.seed, rank, world)
     depth_batches = loop.SeededBatches(DepthDataset(depth_root), train.batch_size, train.seed + 10 ** 6, rank, world)
-    normal_batches = loop.SeededBatches(maps, train.batch_size, train.seed + 3 * 10 ** 6, rank, world)
+    normal_batches = normal_step_source(maps, train.batch_size, train.seed, rank, world)
 
     torch.manual_seed(train.seed)  # identical initial weights on every rank
     model = MapsModel(recipe.model).to(device)  # in place: the optimisers keep their parameters
