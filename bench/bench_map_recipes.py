@@ -12,7 +12,7 @@ views at 64²):
 * ``compare --maps-checkpoint`` on ``--compare-set`` held-out chairs × views under the rig (10 × 4;
   3 × 2, the figure before 2026-12-04, moved FLIP by ±0.03 between neighbouring checkpoints): sRGB
   PSNR / FLIP on the object of NGP without and with G_sp^real against a 1024-spp path-traced
-  reference, and where G_sp^real puts its light.
+  reference, where G_sp^real puts its light, and how much of it is a 2-pixel checkerboard.
 
 With ``--maps-from RUN`` every arm starts from that run's map networks at ``--iterations`` and
 trains only the G_sp^real stage (for switches of that stage; ``train min`` is then the stage's).
@@ -136,13 +136,15 @@ def main() -> None:
           f"{args.compare_set[0]} × {args.compare_set[1]} of them\n")
     print("| arm | diversity ratio | spread over z_da | exemplar L1 (single colour) | G_n / own normals ° (σ 2 px) "
           "| G_n / own normals ° mean (median) on reconstructions | w/o G_sp PSNR / FLIP | NGP PSNR / FLIP "
-          "| G_sp^real's light: precision / recall | train min |\n"
+          "| G_sp^real's light: precision / recall (Nyquist %) | train min |\n"
           "|---|---|---|---|---|---|---|---|---|---|")
     for r in results:
         m, n = r["maps"], r["maps"]["normal_error_deg"]
         image = {k: f"{v['psnr']:.2f} / {v['flip']:.3f}" for k, v in r["images"].items()}
         place = r.get("specular_placement")
         placement = f"{place['precision']:.2f} / {place['recall']:.2f}" if place else "–"
+        if place and "nyquist" in place:
+            placement += f" ({100 * place['nyquist']:.2f})"
         r_n = r.get("maps_recon", {}).get("normal_error_deg")
         recon = (f"{r_n['G_n']['mean']:.1f} ({r_n['G_n']['median']:.1f}) / {r_n['from_coarse_depth']['mean']:.1f} "
                  f"({r_n['from_coarse_depth']['median']:.1f})") if r_n else "–"

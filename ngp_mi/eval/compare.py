@@ -44,7 +44,8 @@ from ngp_mi.camera import Camera
 from ngp_mi.data.sources import resolve_source
 from ngp_mi.data.views import derived_seed, random_lights, view_cameras
 from ngp_mi.eval.fid import InceptionFeatures
-from ngp_mi.eval.metrics import added_light_placement, fid_from_features, flip, kernel_inception_distance, psnr, ssim
+from ngp_mi.eval.metrics import (added_light_placement, fid_from_features, flip, kernel_inception_distance,
+                                 nyquist_power_fraction, psnr, ssim)
 from ngp_mi.eval.report import COMPARE_METRICS, plot_speed_accuracy, write_compare_report
 from ngp_mi.lights import Light, overhead_rig
 from ngp_mi.models.checkpoint import newest_readable
@@ -76,8 +77,9 @@ class CompareConfig:
 
 METRICS = COMPARE_METRICS
 NGP_METHOD, NO_SP_METHOD = "NGP: R_diff ⊕ G_sp^real", "NGP w/o G_sp^real: R_diff on generated maps"
-# G_sp^real's light against the reference's excess over the diffuse image (added_light_placement)
-SPECULAR_METRICS = ("specular_precision", "specular_recall", "specular_added")
+# G_sp^real's light against the reference's excess over the diffuse image (added_light_placement), and
+# the share of its power in a 2-pixel checkerboard (nyquist_power_fraction)
+SPECULAR_METRICS = ("specular_precision", "specular_recall", "specular_added", "specular_nyquist")
 LIGHT_SETUPS = ("rig", "random", "rig+random")
 
 
@@ -302,7 +304,8 @@ def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: G
         diffuse, composite = images[NO_SP_METHOD][1], images[NGP_METHOD][1]
         placement = added_light_placement(reference, diffuse, composite, mask)
         next(r for r in rows if r["method"] == NGP_METHOD).update(
-            {f"specular_{k}": v for k, v in placement.items()})
+            {**{f"specular_{k}": v for k, v in placement.items()},
+             "specular_nyquist": nyquist_power_fraction(composite - diffuse)})
         # the light G_sp^real adds above the light the reference has beyond the diffuse image, both ×4
         tiles.append(to_uint8(np.clip(4 * (composite - diffuse), 0, 1)))
         error_tiles.append(to_uint8(np.clip(4 * (reference - diffuse), 0, 1)))

@@ -69,6 +69,23 @@ def added_light_placement(reference: np.ndarray, base: np.ndarray, composite: np
             "added": float(added.mean())}
 
 
+def nyquist_power_fraction(image: np.ndarray) -> float:
+    """The share of an image's AC power (its per-channel mean removed, summed over channels) at the
+    three Nyquist frequencies of its pixel grid, (½, 0), (0, ½) and (½, ½) cycles per pixel: the
+    2-pixel stripes and checkerboard of stride-2 transposed convolutions. 1 for a pure checkerboard,
+    about 3 / (H W) for white noise, 0 for a flat image and near 0 for a smooth one that fades at the
+    borders (sharp edges, and borders that differ, since the DFT wraps, add a little). H and W even."""
+    x = np.asarray(image, np.float64)
+    x = x.reshape(*x.shape[:2], -1)
+    height, width = x.shape[:2]
+    if height % 2 or width % 2:
+        raise ValueError(f"nyquist_power_fraction: a {height}x{width} image has no Nyquist bin on an odd side")
+    power = np.abs(np.fft.fft2(x - x.mean(axis=(0, 1)), axes=(0, 1))) ** 2
+    total = float(power.sum())
+    nyquist = float(power[[height // 2, 0, height // 2], [0, width // 2, width // 2]].sum())
+    return nyquist / total if total > 0 else 0.0
+
+
 def frechet_distance(mu1: np.ndarray, sigma1: np.ndarray, mu2: np.ndarray, sigma2: np.ndarray) -> float:
     """Fréchet distance of two Gaussians, ``|μ1 − μ2|² + tr(Σ1 + Σ2 − 2 (Σ1 Σ2)^½)`` (FID's formula).
 

@@ -51,7 +51,7 @@ def write_compare_report(config: Any, summary: list[dict[str, Any]], sheets: lis
     b = backend.load()
     keys = ["median_ms", "path_ms_at_equal_flip", "speedup"] + [f"{m}{suffix}" for suffix in ("", "_masked")
                                                               for m in metrics]
-    keys += [k for k in ("fid", "kid", "specular_precision", "specular_recall", "specular_added")
+    keys += [k for k in ("fid", "kid", "specular_precision", "specular_recall", "specular_added", "specular_nyquist")
              if any(k in s for s in summary)]
     names = {"median_ms": "median ms", "path_ms_at_equal_flip": "path tracing ms at equal FLIP",
              "speedup": "× faster than path tracing"}
@@ -104,8 +104,9 @@ w/o G_da a white albedo, w/o G_sp^real the diffuse image alone. NGP, NGP-plus an
 with the specular stage.</li>
 <li>specular_*: where G_sp^real puts its light. With A the light NGP adds to the image w/o G_sp^real and E the
 light the reference has beyond that image (both clipped at 0, linear, on the object): precision = Σ min(A, E) / Σ A
-(the share of the added light the reference also has), recall = Σ min(A, E) / Σ E, added = mean A. The last
-column of each sheet shows A (top) and E (bottom), ×4.</li>
+(the share of the added light the reference also has), recall = Σ min(A, E) / Σ E, added = mean A; nyquist =
+the share of the layer's AC power (NGP − w/o G_sp^real, whole image) at the Nyquist frequencies, a 2-pixel checkerboard (white noise:
+3 / pixels). The last column of each sheet shows A (top) and E (bottom), ×4.</li>
 <li>{fid_note}</li></ul>
 <h2>Results</h2><table><tr>{''.join(f'<th>{html.escape(h)}</th>' for h in head)}</tr>
 {rows}</table>

@@ -433,6 +433,13 @@ class MapsModel(BaseModel):
             result["cyc_n_alone"] = sum(map(self.optimize_normals, normal_batches)) / len(normal_batches)
         return result
 
+    def scale_learning_rates(self, factor: float) -> float:
+        """Set both optimisers' learning rates to ``factor`` × ``lr`` (a schedule's step); returns the rate."""
+        for optimizer in (self.opt_G, self.opt_D):
+            for group in optimizer.param_groups:
+                group["lr"] = self.config.lr * factor
+        return self.config.lr * factor
+
     def optimize_normals(self, maps_batch: dict[str, Any]) -> float:
         """One of the ``normal_steps`` − 1 extra steps of G_n alone: λ_n L_n^cyc of G_n on the paired
         input of ``normal_steps_depth`` (:meth:`normal_cycle_input`) against the real normals, the

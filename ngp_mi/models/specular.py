@@ -36,7 +36,7 @@ from ngp_mi.camera import Camera
 from ngp_mi.models import losses
 from ngp_mi.models.base import BaseModel, config_from_dict, update_moving_average
 from ngp_mi.models.maps import MapsModel, cameras_of, net_to_depth
-from ngp_mi.nets.networks import ResnetGenerator, define_D, define_G
+from ngp_mi.nets.networks import UPSAMPLES, ResnetGenerator, define_D, define_G
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,6 +86,11 @@ class SpecularConfig:
     # that pays for itself in L_real^GAN (on chair map networks past 3,000 steps: little, recall
     # ≤ 0.09 of the reference's excess, but it never makes the image worse; bench/RESULTS.md). 0: off.
     lambda_sparse: float = 0.0
+    # Beyond the paper (issue 15): G_sp^real's two ×2 upsamplings, "transpose" (CycleGAN's stride-2
+    # transposed convolutions, the paper's generators) or "resize" (nearest ×2 + 3×3 convolution,
+    # :func:`~ngp_mi.nets.networks.upsampling`): the transposed ones leave a 2-pixel checkerboard in
+    # the faint I_rs that ``lambda_sparse`` keeps (``compare``'s ``specular_nyquist``).
+    upsample: str = "transpose"
 
 
 def srgb_encode(linear: torch.Tensor) -> torch.Tensor:
@@ -174,7 +179,9 @@ class SpecularModel(BaseModel):
             raise ValueError(f"specular.lambda_sparse must be ≥ 0, got {c.lambda_sparse}")
         if c.diffuse_input not in DIFFUSE_INPUTS:
             raise ValueError(f"specular.diffuse_input must be one of {DIFFUSE_INPUTS}, got {c.diffuse_input!r}")
-        self.G_sp = define_G(7 if c.highlight_input else 6, 3, c.ngf, c.blocks)
+        if c.upsample not in UPSAMPLES:
+            raise ValueError(f"specular.upsample must be one of {UPSAMPLES}, got {c.upsample!r}")
+        self.G_sp = define_G(7 if c.highlight_input else 6, 3, c.ngf, c.blocks, upsample=c.upsample)
         if c.dark_start:
             start_dark(self.G_sp)
         if c.ema:  # G_sp holds the average (what inference and export use), G_sp_train the trained weights

@@ -49,6 +49,20 @@ def check_image_size(height: int, width: int, what: str = "input") -> None:
 
 
 LATENT_MODES = ("concat", "film")
+UPSAMPLES = ("transpose", "resize")
+
+
+def upsampling(in_channels: int, out_channels: int, mode: str = "transpose") -> nn.Module:
+    """×2 upsampling of a :class:`ResnetGenerator`'s decoder. ``transpose`` (CycleGAN's): a stride-2
+    3×3 transposed convolution, whose kernel covers even output pixels with one tap per axis and odd
+    ones with two, so a trained filter leaves a 2-pixel checkerboard unless its taps balance.
+    ``resize`` (Odena et al. 2016, "Deconvolution and checkerboard artifacts"): nearest-neighbour
+    ×2, then a 3×3 convolution, which weighs every output pixel alike."""
+    if mode == "transpose":
+        return nn.ConvTranspose2d(in_channels, out_channels, 3, 2, 1, output_padding=1)
+    if mode == "resize":
+        return nn.Sequential(nn.Upsample(scale_factor=2, mode="nearest"), nn.Conv2d(in_channels, out_channels, 3, 1, 1))
+    raise ValueError(f"upsample must be one of {UPSAMPLES}, got {mode!r}")
 
 
 class FiLM(nn.Module):
@@ -85,11 +99,13 @@ class ResnetGenerator(nn.Module):
     * ``film``: every instance norm of the encoder and the upsampling decoder is followed by a
       :class:`FiLM` of the code, which the norm cannot undo.
 
+    ``upsample`` picks the decoder's two ×2 layers (:func:`upsampling`).
+
     Images are ``SIZE_MULTIPLE`` k pixels on a side (:func:`check_image_size`).
     """
 
     def __init__(self, in_channels: int, out_channels: int, ngf: int = 64, blocks: int = 9, latent_dim: int = 0,
-                 latent_mode: str = "concat"):
+                 latent_mode: str = "concat", upsample: str = "transpose"):
         super().__init__()
         if latent_mode not in LATENT_MODES:
             raise ValueError(f"latent_mode must be one of {LATENT_MODES}, got {latent_mode!r}")
@@ -105,8 +121,8 @@ class ResnetGenerator(nn.Module):
             self.film = nn.ModuleList([FiLM(latent_dim, c) for c in (ngf, 2 * ngf, 4 * ngf, 2 * ngf, ngf)])
         self.blocks = nn.Sequential(*[ResnetBlock(4 * ngf) for _ in range(blocks)])
         self.decoder = nn.Sequential(
-            nn.ConvTranspose2d(4 * ngf, 2 * ngf, 3, 2, 1, output_padding=1), _norm(2 * ngf), nn.ReLU(True),
-            nn.ConvTranspose2d(2 * ngf, ngf, 3, 2, 1, output_padding=1), _norm(ngf), nn.ReLU(True),
+            upsampling(4 * ngf, 2 * ngf, upsample), _norm(2 * ngf), nn.ReLU(True),
+            upsampling(2 * ngf, ngf, upsample), _norm(ngf), nn.ReLU(True),
             nn.ReflectionPad2d(3), nn.Conv2d(ngf, out_channels, 7), nn.Tanh())
 
     @property
@@ -347,8 +363,8 @@ def init_weights(net: nn.Module, gain: float = 0.02) -> nn.Module:
 
 
 def define_G(in_channels: int, out_channels: int, ngf: int = 64, blocks: int = 9, latent_dim: int = 0,
-             latent_mode: str = "concat") -> ResnetGenerator:
-    net = init_weights(ResnetGenerator(in_channels, out_channels, ngf, blocks, latent_dim, latent_mode))
+             latent_mode: str = "concat", upsample: str = "transpose") -> ResnetGenerator:
+    net = init_weights(ResnetGenerator(in_channels, out_channels, ngf, blocks, latent_dim, latent_mode, upsample))
     for module in net.modules():
         if isinstance(module, FiLM):
             module.reset_parameters()

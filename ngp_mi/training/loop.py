@@ -51,6 +51,18 @@ class SeededBatches:
         return default_collate([self.dataset[i] for i in self.indices(step)])
 
 
+def linear_decay(step: int, iterations: int, decay_from: float) -> float:
+    """The learning rate's factor for step ``step`` (0-based) of ``iterations``: 1 before
+    ``decay_from`` × ``iterations``, then falling linearly to 1 / (n + 1) at the last step, n being the
+    decaying steps (pix2pix / CycleGAN's "linear" policy, per step instead of per epoch: a GAN's
+    generators oscillate at a constant rate and settle as it falls). A function of the step alone, so a
+    resumed run sets the same rates. ``decay_from`` 1: constant."""
+    if not 0.0 <= decay_from <= 1.0:
+        raise ValueError(f"lr_decay_from = {decay_from}: a fraction of the iterations in [0, 1]")
+    start = round(decay_from * iterations)
+    return 1.0 - max(0, step - start + 1) / (iterations - start + 1)
+
+
 def reseed(seed: int, step: int, world: int = 1, rank: int = 0) -> None:
     """Seed torch's generator for one step (the same rule in every trainer, so resumes are exact)."""
     torch.manual_seed(seed * 1_000_003 + step * world + rank)

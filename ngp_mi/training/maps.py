@@ -11,7 +11,8 @@ The recipe (TOML; :mod:`ngp_mi.training.recipe`) has these tables:
   ``coarse_resolution``): coarse shapes, as NGP decorates.
 * ``[model]`` — fields of :class:`~ngp_mi.models.maps.MapsConfig`.
 * ``[train]`` (:class:`MapsTrain`) — iterations, batch size, seed, output folder, how often to
-  log, write image grids and checkpoints, and the device (``"auto"``: CUDA when available).
+  log, write image grids and checkpoints, the device (``"auto"``: CUDA when available) and the map
+  stage's learning-rate schedule (``lr_decay_from``; the rate is logged as ``lr``).
 * ``[specular]`` (optional; :class:`SpecularStage` and the fields of
   :class:`~ngp_mi.models.specular.SpecularConfig`) — the second stage, the realistic specular
   generator G_sp^real, trained for ``iterations`` more steps with the map networks fixed, as the
@@ -91,9 +92,15 @@ class MapsTrain:
     image_every: int = 100
     checkpoint_every: int = 500
     device: str = "auto"
+    # The map networks' learning rates fall linearly to near 0 over the map stage's iterations from this
+    # fraction of them on (loop.linear_decay: CycleGAN's and BicycleGAN's schedule); 1: constant, the
+    # paper's (it names none).
+    lr_decay_from: float = 1.0
 
     def __post_init__(self) -> None:
         positive(self, "iterations", "batch_size", "log_every", "image_every", "checkpoint_every")
+        if not 0.0 <= self.lr_decay_from <= 1.0:
+            raise ValueError(f"[train] lr_decay_from = {self.lr_decay_from}: a fraction of the iterations in [0, 1]")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -296,8 +303,10 @@ def train_maps(config_path: str | Path, log=print, out: str | Path | None = None
         model.train(step < maps_iterations)
         if step < maps_iterations:
             stage, visuals = "maps", model
+            lr = model.scale_learning_rates(loop.linear_decay(step, maps_iterations, train.lr_decay_from))
             losses = model.optimize(depth_batch, loop.to_device(maps_batches(step), device),
                                     normal_step_batches(normal_batches, model.config, step, device))
+            losses["lr"] = lr
         else:
             stage, visuals = "specular", specular
             exemplars = (loop.to_device(maps_batches(step), device)

@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from ngp_mi.eval.metrics import added_light_placement, fid_from_features, flip, frechet_distance, kernel_inception_distance, psnr, ssim
+from ngp_mi.eval.metrics import (added_light_placement, fid_from_features, flip, frechet_distance, kernel_inception_distance,
+                                 nyquist_power_fraction, psnr, ssim)
 
 
 def test_psnr_known_values_and_mask():
@@ -75,3 +76,24 @@ def test_added_light_placement_counts_the_light_the_reference_also_has():
         {"precision": 1.0, "recall": 1 / 3, "added": 0.1})
     nothing = added_light_placement(base, base, base)  # nothing added, nothing missed
     assert nothing == {"precision": 1.0, "recall": 1.0, "added": 0.0}
+
+
+def test_nyquist_power_fraction_finds_2_pixel_checkerboards_and_stripes():
+    """Pure checkerboards and 2-pixel stripes (any offset and colour) are all Nyquist power; a flat
+    image has none and a smooth blob next to none; white noise has its share, 3 of the H W − 1 AC
+    frequencies; a faint checkerboard on the blob is found."""
+    y, x = np.mgrid[:32, :48]
+    checker = ((x + y) % 2)[..., None] * np.array([0.2, 0.5, 0.1]) + 0.3
+    assert nyquist_power_fraction(checker) == pytest.approx(1.0)
+    assert nyquist_power_fraction(x % 2) == pytest.approx(1.0) and nyquist_power_fraction(y % 2 - 7.0) == pytest.approx(1.0)
+    blob = np.exp(-((x - 24) ** 2 + (y - 16) ** 2) / 72.0)[..., None] * np.array([1.0, 0.5, 0.2])
+    assert nyquist_power_fraction(blob) < 1e-6
+    ramp = x / 48.0  # the DFT wraps it into a saw: its edge puts a little power everywhere
+    assert 0 < nyquist_power_fraction(ramp) < 0.01
+    assert nyquist_power_fraction(np.full((8, 8, 3), 0.4)) == 0.0
+    noise = np.random.default_rng(0).normal(size=(64, 64, 3))
+    assert nyquist_power_fraction(noise) == pytest.approx(3 / (64 * 64 - 1), rel=0.5)
+    faint = blob + 0.01 * ((x + y) % 2)[..., None]  # a faint checkerboard over the blob: a measurable share
+    assert 0.001 < nyquist_power_fraction(faint) < 0.5
+    with pytest.raises(ValueError, match="7x8"):
+        nyquist_power_fraction(np.zeros((7, 8)))

@@ -124,6 +124,17 @@ def test_with_ema_g_sp_is_the_moving_average_of_the_trained_generator(data, tmp_
         SpecularModel(SpecularConfig(**{**TINY.__dict__, "ema": 1.0}))
 
 
+def test_resize_upsampling_builds_g_sp_alone_with_it_and_bad_values_are_refused():
+    model = SpecularModel(SpecularConfig(**{**TINY.__dict__, "upsample": "resize"}))
+    kinds = lambda net: {type(m).__name__ for m in net.decoder.modules()}
+    assert "Upsample" in kinds(model.G_sp) and "ConvTranspose2d" not in kinds(model.G_sp)
+    assert "ConvTranspose2d" in kinds(model.F_sp)  # the inverse only serves the cycle
+    mask = torch.ones(2, 1, 16, 16)
+    assert model.specular(torch.randn(2, 3, 16, 16), torch.rand(2, 3, 16, 16) * 2 - 1, mask).shape == (2, 3, 16, 16)
+    with pytest.raises(ValueError, match="specular.upsample must be one of"):
+        SpecularModel(SpecularConfig(**{**TINY.__dict__, "upsample": "pixelshuffle"}))
+
+
 def test_a_grey_g_sp_adds_uncoloured_light_and_still_learns():
     torch.manual_seed(0)
     model = SpecularModel(SpecularConfig(**{**TINY.__dict__, "grey": True}))

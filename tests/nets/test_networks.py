@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from ngp_mi.nets.networks import (PatchDiscriminator, define_D, define_E, define_G, define_palette_G, object_mask,
+from ngp_mi.nets.networks import (upsampling, PatchDiscriminator, define_D, define_E, define_G, define_palette_G, object_mask,
                                   patch_receptive_field)
 
 
@@ -186,3 +186,24 @@ def test_the_part_encoder_reads_exact_colour_means_of_its_regions():
     mu, logvar = E(image)
     assert mu.shape == logvar.shape == (1, 6)
     assert torch.allclose(mu, E.mu(E.part_colours(image).flatten(1)), atol=1e-6)
+
+
+def test_resize_upsampling_weighs_every_pixel_alike_and_the_transposed_one_does_not():
+    """A constant feature map through the decoder's ×2 layer: the stride-2 transposed convolution
+    (one kernel tap per axis on even pixels, two on odd) comes out 2-periodic inside the image; the
+    nearest ×2 + convolution comes out constant there. Both keep the generator's shapes."""
+    torch.manual_seed(0)
+    flat = torch.ones(1, 4, 8, 8)
+    for mode, periodic in (("transpose", True), ("resize", False)):
+        layer = upsampling(4, 3, mode)
+        with torch.no_grad():
+            inner = layer(flat)[..., 2:-2, 2:-2]
+        assert inner.shape[-2:] == (12, 12)
+        spread = (inner - inner.mean((-2, -1), keepdim=True)).abs().max().item()
+        assert (spread > 1e-3) is periodic, mode
+        if periodic:  # even and odd pixels differ, pixels two apart do not
+            assert torch.allclose(inner[..., ::2, ::2], inner[..., ::2, ::2][..., :1, :1].expand(-1, -1, 6, 6), atol=1e-6)
+    generator = define_G(6, 3, ngf=8, blocks=1, upsample="resize")
+    assert generator(torch.randn(2, 6, 16, 16)).shape == (2, 3, 16, 16)
+    with pytest.raises(ValueError, match="upsample must be one of"):
+        define_G(6, 3, ngf=8, blocks=1, upsample="bilinear")

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from ngp_mi.models.maps import MapsConfig, MapsModel
-from ngp_mi.training.loop import JsonLog, SeededBatches, resume, save
+from ngp_mi.training.loop import JsonLog, SeededBatches, linear_decay, resume, save
 
 
 def test_batches_visit_every_item_once_per_epoch_and_ranks_split_them():
@@ -48,3 +48,13 @@ def test_a_resume_skips_a_damaged_checkpoint_and_clears_killed_writes(tmp_path):
     with pytest.warns(UserWarning, match=r"ckpt-00000006/state.pt: damaged .*using the older ckpt-00000003"):
         step, path = resume(tmp_path, [model])
     assert step == 3 and path.name == "ckpt-00000003" and not killed.exists()
+
+
+def test_linear_decay_is_constant_then_falls_to_a_small_positive_rate():
+    # 10 steps from 0.6 on: steps 0-5 at full rate, then 4/5 … 1/5 (CycleGAN's policy per step)
+    assert [linear_decay(s, 10, 0.6) for s in range(10)] == pytest.approx([1] * 6 + [0.8, 0.6, 0.4, 0.2])
+    assert all(linear_decay(s, 7, 1.0) == 1.0 for s in range(7))  # 1: constant
+    assert linear_decay(0, 4, 0.0) == pytest.approx(0.8) and linear_decay(3, 4, 0.0) == pytest.approx(0.2)
+    for bad in (-0.1, 1.5):
+        with pytest.raises(ValueError, match="lr_decay_from"):
+            linear_decay(0, 10, bad)

@@ -2,6 +2,7 @@
 
 import math
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -9,7 +10,8 @@ import torch
 from helpers import MAPS_TINY, maps_recipe, run_torchrun
 from safetensors.torch import load_file
 
-from ngp_mi.models.checkpoint import list_checkpoints
+from ngp_mi.models.checkpoint import list_checkpoints, read_state
+from ngp_mi.training.loop import linear_decay
 from ngp_mi.training.maps import train_maps
 
 
@@ -184,3 +186,33 @@ def test_normal_steps_log_g_ns_own_loss_and_resume_exactly(tmp_path):
     with pytest.raises(ValueError, match=r"normal_steps_depth = 'coarse' .* set \[data\] coarse_shapes"):
         train_maps(maps_recipe(tmp_path, "coarse", iterations=1, device='"cpu"'), log=lambda *_: None,
                    overrides=["model.normal_steps=2", 'model.normal_steps_depth="coarse"'])
+
+
+def test_lr_decay_sets_the_map_optimisers_rates_by_step_and_resumes_exactly(tmp_path):
+    """[train] lr_decay_from = 0.5 over 4 map steps: the log's and the checkpoints' Adam rates are lr ×
+    the schedule's factor (steps 2 and 3 decay), and a run killed after step 3 and resumed ends with
+    the straight run's weights."""
+    text = maps_recipe(tmp_path, "straight", iterations=4, device='"cpu"', checkpoint_every=1).read_text()
+    (tmp_path / "maps-only.toml").write_text(text[:text.index("[specular]")])
+    overrides = ["train.lr_decay_from=0.5"]
+    straight = train_maps(tmp_path / "maps-only.toml", log=lambda *_: None, overrides=overrides)
+    lr = json.loads(read_state(list_checkpoints(straight)[0])["model_config"])["maps"]["lr"]
+    factors = [1.0, 1.0, 2 / 3, 1 / 3]
+    assert factors == pytest.approx([linear_decay(s, 4, 0.5) for s in range(4)])
+    records = [json.loads(line) for line in (straight / "log.jsonl").read_text().splitlines()]
+    assert [r["lr"] for r in records] == pytest.approx([lr * f for f in factors])
+    for checkpoint, factor in zip(list_checkpoints(straight), factors[1:]):  # the newest three: steps 2, 3, 4
+        state = read_state(checkpoint)
+        assert all(g["lr"] == pytest.approx(lr * factor) for name in ("opt_G", "opt_D")
+                   for g in state[name]["param_groups"]), checkpoint.name
+
+    # killed after step 3: the straight run's folder without its last checkpoint, resumed
+    shutil.copytree(straight, tmp_path / "resumed")
+    shutil.rmtree(list_checkpoints(tmp_path / "resumed")[-1])
+    resumed = train_maps(tmp_path / "maps-only.toml", log=lambda *_: None, out=tmp_path / "resumed",
+                         overrides=overrides)
+    a, b = weights(straight), weights(resumed)
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    with pytest.raises(ValueError, match=r"\[train\] lr_decay_from = 1.5"):
+        train_maps(maps_recipe(tmp_path, "bad", iterations=1, device='"cpu"'), log=lambda *_: None,
+                   overrides=["train.lr_decay_from=1.5"])
