@@ -302,12 +302,12 @@ def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: G
     error_labels = ["FLIP error"] * len(errors)
     if NGP_METHOD in images and NO_SP_METHOD in images:
         diffuse, composite = images[NO_SP_METHOD][1], images[NGP_METHOD][1]
+        layer = composite - diffuse  # G_sp^real's light as NGP adds it
         placement = added_light_placement(reference, diffuse, composite, mask)
         next(r for r in rows if r["method"] == NGP_METHOD).update(
-            {**{f"specular_{k}": v for k, v in placement.items()},
-             "specular_nyquist": nyquist_power_fraction(composite - diffuse)})
+            {**{f"specular_{k}": v for k, v in placement.items()}, "specular_nyquist": nyquist_power_fraction(layer)})
         # the light G_sp^real adds above the light the reference has beyond the diffuse image, both ×4
-        tiles.append(to_uint8(np.clip(4 * (composite - diffuse), 0, 1)))
+        tiles.append(to_uint8(np.clip(4 * layer, 0, 1)))
         error_tiles.append(to_uint8(np.clip(4 * (reference - diffuse), 0, 1)))
         labels.append("G_sp^real adds, x4")
         error_labels.append("ref - w/o G_sp, x4")

@@ -99,8 +99,10 @@ class MapsTrain:
 
     def __post_init__(self) -> None:
         positive(self, "iterations", "batch_size", "log_every", "image_every", "checkpoint_every")
-        if not 0.0 <= self.lr_decay_from <= 1.0:
-            raise ValueError(f"[train] lr_decay_from = {self.lr_decay_from}: a fraction of the iterations in [0, 1]")
+        try:  # the schedule's own check of its range, named by the recipe's table
+            loop.linear_decay(0, self.iterations, self.lr_decay_from)
+        except ValueError as error:
+            raise ValueError(f"[train] {error}") from None
 
 
 @dataclasses.dataclass(frozen=True)

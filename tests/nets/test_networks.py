@@ -1,8 +1,8 @@
 import pytest
 import torch
 
-from ngp_mi.nets.networks import (upsampling, PatchDiscriminator, define_D, define_E, define_G, define_palette_G, object_mask,
-                                  patch_receptive_field)
+from ngp_mi.nets.networks import (PatchDiscriminator, define_D, define_E, define_G, define_palette_G, object_mask,
+                                  patch_receptive_field, upsampling)
 
 
 def test_generator_shapes_and_latent_conditioning():
