@@ -117,7 +117,12 @@ the share of the layer's AC power (NGP − w/o G_sp^real, whole image) at the Ny
 
 
 def fmt(value: Any) -> str:
-    """A table cell: 3 decimals below 10, 1 above, ∞ for infinity."""
+    """A table cell: 3 decimals below 10, 1 above, 2 significant digits below 0.01 (shares such as
+    ``specular_nyquist`` live there and 3 decimals would print them as 0), ∞ for infinity."""
     if isinstance(value, float):
-        return "∞" if math.isinf(value) else f"{value:.3f}" if abs(value) < 10 else f"{value:.1f}"
+        if math.isinf(value):
+            return "∞"
+        if 0 < abs(value) < 0.01:
+            return f"{value:.2g}"
+        return f"{value:.3f}" if abs(value) < 10 else f"{value:.1f}"
     return str(value)

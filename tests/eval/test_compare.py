@@ -114,3 +114,11 @@ def test_the_path_tracers_time_at_equal_flip_is_interpolated_on_the_ladder():
     assert out["better"]["equal_flip_note"] == "more than (highest spp)"
     assert out["on a rung"]["path_ms_at_equal_flip"] == pytest.approx(32.0)
     assert "path_ms_at_equal_flip" not in out["path tracing 4 spp"]
+
+
+def test_report_cells_keep_small_shares_readable():
+    """A share such as specular_nyquist (~0.001) keeps two significant digits instead of printing as 0."""
+    from ngp_mi.eval.report import fmt
+
+    assert [fmt(v) for v in (0.0, 0.00017, 0.0013, 0.197, 42.63, float("inf"), 3)] == [
+        "0.000", "0.00017", "0.0013", "0.197", "42.6", "∞", "3"]
