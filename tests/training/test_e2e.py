@@ -115,10 +115,13 @@ def test_the_anchor_adds_the_weighted_occupancy_gradient_of_the_priors_training_
                 p.sub_(t * direction[name])
         return value
 
-    h = 1e-5
+    # the decoder is piecewise linear (leaky ReLUs, IM-NET's leaky clamp): a step of 1e-5 crossed enough
+    # kinks to move the quotient 2 % off on a prior trained at one thread; in float64 the step can be
+    # 100x smaller, and both thread counts then agree within 0.1 %
+    h = 1e-7
     numeric = (weighted(h) - weighted(-h)) / (2 * h)
     analytic = sum(float((gradient[name].double() * direction[name]).sum()) for name in parameters)
-    assert numeric == pytest.approx(analytic, rel=2e-2, abs=1e-6)
+    assert numeric == pytest.approx(analytic, rel=5e-3, abs=1e-6)
 
 
 def test_an_anchored_run_logs_its_term_and_a_control_has_none(runs, tmp_path):
