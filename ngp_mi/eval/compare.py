@@ -46,7 +46,7 @@ from ngp_mi.data.views import derived_seed, random_lights, view_cameras
 from ngp_mi.eval.fid import InceptionFeatures
 from ngp_mi.eval.metrics import (added_light_placement, fid_from_features, flip, kernel_inception_distance,
                                  nyquist_power_fraction, psnr, ssim)
-from ngp_mi.eval.report import COMPARE_METRICS, plot_speed_accuracy, write_compare_report
+from ngp_mi.eval.report import COMPARE_METRICS, SPECULAR_METRICS, plot_speed_accuracy, write_compare_report
 from ngp_mi.lights import Light, overhead_rig
 from ngp_mi.models.checkpoint import newest_readable
 from ngp_mi.models.maps import MapsModel
@@ -77,9 +77,6 @@ class CompareConfig:
 
 METRICS = COMPARE_METRICS
 NGP_METHOD, NO_SP_METHOD = "NGP: R_diff ⊕ G_sp^real", "NGP w/o G_sp^real: R_diff on generated maps"
-# G_sp^real's light against the reference's excess over the diffuse image (added_light_placement), and
-# the share of its power in a 2-pixel checkerboard (nyquist_power_fraction)
-SPECULAR_METRICS = ("specular_precision", "specular_recall", "specular_added", "specular_nyquist")
 LIGHT_SETUPS = ("rig", "random", "rig+random")
 
 

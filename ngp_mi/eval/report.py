@@ -16,6 +16,9 @@ from ngp_mi.atomic import write_text
 from ngp_mi.eval.fid import missing_weights_message
 
 COMPARE_METRICS = ("psnr_linear", "ssim_linear", "psnr_srgb", "ssim_srgb", "flip")
+# G_sp^real's light against the reference's excess over the diffuse image (added_light_placement), and
+# the share of its power in a 2-pixel checkerboard (nyquist_power_fraction): NGP's row only
+SPECULAR_METRICS = ("specular_precision", "specular_recall", "specular_added", "specular_nyquist")
 
 
 def plot_speed_accuracy(summary: list[dict[str, Any]], path: Path) -> None:
@@ -51,8 +54,7 @@ def write_compare_report(config: Any, summary: list[dict[str, Any]], sheets: lis
     b = backend.load()
     keys = ["median_ms", "path_ms_at_equal_flip", "speedup"] + [f"{m}{suffix}" for suffix in ("", "_masked")
                                                               for m in metrics]
-    keys += [k for k in ("fid", "kid", "specular_precision", "specular_recall", "specular_added", "specular_nyquist")
-             if any(k in s for s in summary)]
+    keys += [k for k in ("fid", "kid", *SPECULAR_METRICS) if any(k in s for s in summary)]
     names = {"median_ms": "median ms", "path_ms_at_equal_flip": "path tracing ms at equal FLIP",
              "speedup": "× faster than path tracing"}
     head = ["method"] + [names.get(k, k) for k in keys]

@@ -54,9 +54,10 @@ class SeededBatches:
 def linear_decay(step: int, iterations: int, decay_from: float) -> float:
     """The learning rate's factor for step ``step`` (0-based) of ``iterations``: 1 before
     ``decay_from`` × ``iterations``, then falling linearly to 1 / (n + 1) at the last step, n being the
-    decaying steps (pix2pix / CycleGAN's "linear" policy, per step instead of per epoch: a GAN's
-    generators oscillate at a constant rate and settle as it falls). A function of the step alone, so a
-    resumed run sets the same rates. ``decay_from`` 1: constant."""
+    decaying steps (pix2pix / CycleGAN's "linear" policy, per step instead of per epoch, meant to let a
+    GAN's generators settle; on issue 15's map stage it bought nothing over a constant rate of the same
+    length, bench/RESULTS.md). A function of the step alone, so a resumed run sets the same rates.
+    ``decay_from`` 1: constant."""
     if not 0.0 <= decay_from <= 1.0:
         raise ValueError(f"lr_decay_from = {decay_from}: a fraction of the iterations in [0, 1]")
     start = round(decay_from * iterations)
