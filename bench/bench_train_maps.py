@@ -5,10 +5,12 @@ albedo 16) at 64² and 128², batch 8; one iteration = both cycles, the generato
 (and, with ``[model] normal_steps``, G_n's own steps).
 
 ``--versus KEY=VALUE,…`` times the preset against the preset with those recipe overrides at 64²,
-iteration by iteration in one process (the machines are noisy), and prints both medians and their ratio.
+iteration by iteration in one process (the machines are noisy), and prints both medians and their ratio;
+``--base KEY=VALUE,…`` applies its overrides to both sides first.
 
     .venv/bin/python bench/bench_train_maps.py [--iterations 8]
     .venv/bin/python bench/bench_train_maps.py --versus 'model.normal_cycle_depth="real",model.normal_steps=6'
+    .venv/bin/python bench/bench_train_maps.py --base 'model.lambda_gan_n=1e-30' --versus 'model.lambda_gan_n=0'
 """
 
 from __future__ import annotations
@@ -60,7 +62,8 @@ def versus(base: MapsRecipe, other: MapsRecipe, args: argparse.Namespace, b) -> 
           f"({torch.get_num_threads()} threads), {b.variant}; preset cpu, 64², batch {args.batch}, "
           f"median of {args.iterations} interleaved iterations after one warm-up\n")
     print("| recipe | s / iteration (median) | ratio |\n|---|---|---|")
-    print(f"| cpu | {a:.2f} | 1.00 |\n| cpu + {args.versus} | {c:.2f} | {c / a:.2f} |")
+    base = f"cpu + {args.base}" if args.base else "cpu"
+    print(f"| {base} | {a:.2f} | 1.00 |\n| {base} + {args.versus} | {c:.2f} | {c / a:.2f} |")
 
 
 def main() -> None:
@@ -68,11 +71,14 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=8)
     parser.add_argument("--batch", type=int, default=8)
     parser.add_argument("--versus", metavar="KEY=VALUE,…", help="recipe overrides to time against the preset at 64²")
+    parser.add_argument("--base", default="", metavar="KEY=VALUE,…", help="overrides of both sides of --versus")
     args = parser.parse_args()
     b = backend.load()
-    recipe = MapsRecipe.read(ROOT / "train" / "maps_cpu.toml")
+    base = [o for o in args.base.split(",") if o]
+    recipe = MapsRecipe.read(ROOT / "train" / "maps_cpu.toml", base)
     if args.versus:
-        versus(recipe, MapsRecipe.read(ROOT / "train" / "maps_cpu.toml", [o for o in args.versus.split(",") if o]), args, b)
+        versus(recipe, MapsRecipe.read(ROOT / "train" / "maps_cpu.toml", base + [o for o in args.versus.split(",") if o]),
+               args, b)
         return
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

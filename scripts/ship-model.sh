@@ -5,7 +5,7 @@
 #
 #   scripts/ship-model.sh chair|car [MAP_STEPS] [SPECULAR_STEPS]
 #
-# MAP_STEPS / SPECULAR_STEPS cut the `cpu` recipe (6,000 / 1,500) to what the machine's time allows;
+# MAP_STEPS / SPECULAR_STEPS cut the `cpu` recipe (4,000 / 1,500) to what the machine's time allows;
 # the card records the steps taken. The shape prior and the map networks share nothing, so they
 # train side by side, one CPU thread each. SHAPE_FROM=MODEL (a shipped name or a model folder)
 # keeps that model's shape prior and re-trains the maps only. MAPS_FROM=RUN (a maps run that reached

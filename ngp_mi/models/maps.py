@@ -117,7 +117,7 @@ class MapsConfig:
     ema: float = 0.0
     # L_n^GAN's weight (1 in the paper, as every GAN term). Where the normal cycle pairs G_n's input
     # with the real normals (normal_cycle_depth "real" / "coarse"), its L1 is supervision, and the
-    # adversarial term only adds the noise of a young discriminator's opinion.
+    # adversarial term only adds the noise of a young discriminator's opinion. At 0, D_n is not trained.
     lambda_gan_n: float = 1.0
     # G_n's updates per iteration: the joint step, then ``normal_steps`` − 1 steps of G_n alone on
     # λ_n L_n^cyc of further maps batches, G_n reading their own depth ("real") or their shape's
@@ -361,7 +361,9 @@ class MapsModel(BaseModel):
                         "depth_cycled": depth_cycled_net, "diffuse_r": diffuse_r_net, "depth_g": depth_g_net,
                         "normal_cycled": normal_cycled, "albedo_cycled": albedo_cycled_net}
         return {
-            "gan_n": losses.normal_gan_loss(self.D_n, normal_g),
+            # at weight 0 neither L_n^GAN nor D_n is computed (D_n, untrained, stays in the checkpoint)
+            "gan_n": (losses.normal_gan_loss(self.D_n, normal_g) if self.config.lambda_gan_n
+                      else normal_g.new_zeros(())),
             "gan_da": losses.albedo_gan_loss(self.D_da, albedo_g_net),
             "gan_df": losses.diffuse_gan_loss(self.D_df, diffuse_g_net),
             "gan_depth": losses.depth_gan_loss(self.D_depth, depth_g_net),
@@ -409,8 +411,9 @@ class MapsModel(BaseModel):
         return (on_both | ((mask <= 0) & (real_mask <= 0))).to(depth.dtype)
 
     def discriminator_terms(self) -> torch.Tensor:
-        pairs = zip((self.D_n, self.D_da, self.D_df, self.D_depth, self.D_noc),
-                    ("normal", "albedo", "diffuse", "depth", "noc"))
+        pairs = [(self.D_da, "albedo"), (self.D_df, "diffuse"), (self.D_depth, "depth"), (self.D_noc, "noc")]
+        if self.config.lambda_gan_n:
+            pairs.insert(0, (self.D_n, "normal"))
         return sum(losses.discriminator_loss(D, *self._for_d[name]) for D, name in pairs)
 
     def optimize(self, depth_batch: dict[str, Any], maps_batch: dict[str, Any],

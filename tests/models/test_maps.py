@@ -279,6 +279,24 @@ def test_with_normal_input_g_n_reads_the_depths_own_normals_beside_it(loaders):
         dataclasses.replace(TINY, normal_input="normals")
 
 
+def test_a_zero_normal_gan_weight_skips_d_n_and_trains_the_generators_as_a_vanishing_one(loaders):
+    """[model] lambda_gan_n = 0 computes neither L_n^GAN nor D_n's loss: D_n keeps its weights, and the
+    generators take the step a vanishing weight (1e-30) gives, which still trains D_n."""
+    depth, maps = next(zip(*loaders))
+    models = {}
+    for weight in (0.0, 1e-30):
+        torch.manual_seed(12)
+        models[weight] = MapsModel(dataclasses.replace(TINY, lambda_gan_n=weight))
+        d_n = [p.detach().clone() for p in models[weight].D_n.parameters()]
+        result = models[weight].optimize(depth, maps)
+        trained = any(not torch.equal(a, b) for a, b in zip(d_n, models[weight].D_n.parameters()))
+        assert trained == (weight > 0) and math.isfinite(result["G"]) and math.isfinite(result["D"])
+    assert result["gan_n"] > 0
+    for name in ("G_n", "G_da", "G_depth", "E_da", "D_da", "D_df"):
+        for a, b in zip(getattr(models[0.0], name).parameters(), getattr(models[1e-30], name).parameters()):
+            assert torch.allclose(a, b, rtol=1e-6, atol=1e-9), name
+
+
 def test_normal_steps_move_g_n_alone_on_the_paired_normal_cycle(loaders):
     """[model] normal_steps: an extra step trains G_n alone on λ_n L_n^cyc of the paired input (the
     real depth here) — the other generators, the discriminators and their Adam moments untouched —
