@@ -192,7 +192,7 @@ def compare_flags(p: argparse.ArgumentParser) -> None:
     from ngp_mi.eval.compare import CompareConfig
 
     p.add_argument("--source", default=default(CompareConfig, "source"), help="chair | car | mesh folder / file | "
-                   "scene .xml (default: the --maps-checkpoint run's source, else chair)")
+                   "scene .xml (default: the family the --maps-checkpoint networks trained on, else chair)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--num-shapes", type=at_least(1), default=default(CompareConfig, "num_shapes"),
                    help="shapes (default: %(default)s)")
@@ -208,8 +208,9 @@ def compare_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reference-spp", type=at_least(1), default=default(CompareConfig, "reference_spp"),
                    help="spp of the reference (default: %(default)s)")
     p.add_argument("--seed", type=int, default=default(CompareConfig, "seed"), help="seed (default: %(default)s)")
-    p.add_argument("--maps-checkpoint", help="a `train maps` run folder: adds NGP-BP, NGP, NGP-plus and the ablations "
-                                             "on generated maps")
+    p.add_argument("--maps-checkpoint", "--model", dest="maps_checkpoint",
+                   help="trained map networks: a `train maps` run folder, a shipped model (chair, car) or a model "
+                        "folder; adds NGP-BP, NGP, NGP-plus and the ablations on generated maps")
     p.add_argument("--inception-weights", help="local inception-2015-12-05.pt (TorchScript): adds FID / KID; "
                                                "never downloaded")
 

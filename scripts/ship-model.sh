@@ -8,11 +8,11 @@
 # MAP_STEPS / SPECULAR_STEPS cut the `cpu` recipe (4,000 / 1,500) to what the machine's time allows;
 # the card records the steps taken. The shape prior and the map networks share nothing, so they
 # train side by side, one CPU thread each. SHAPE_FROM=MODEL (a shipped name or a model folder)
-# keeps that model's shape prior and re-trains the maps only. MAPS_FROM=RUN (a maps run that reached
+# keeps that model's shape prior and re-trains the maps only, on all the cores. MAPS_FROM=RUN (a maps run that reached
 # MAP_STEPS) keeps its map networks and re-trains the G_sp^real stage only, into maps_FAMILY_sp.
 set -euo pipefail
 family=${1:?usage: scripts/ship-model.sh chair|car [MAP_STEPS] [SPECULAR_STEPS]}
-map_steps=${2:-6000}
+map_steps=${2:-4000}
 specular_steps=${3:-1500}
 bin=${NGP_MI:-.venv/bin/ngp-mi}
 case "$family" in
@@ -27,8 +27,10 @@ runs=outputs/train
 held_out=outputs/data/held_out_$family
 mkdir -p "$runs"
 
+maps_threads=1
 if [ -n "${SHAPE_FROM:-}" ]; then
   shape_args=(--shape-from "$SHAPE_FROM")
+  maps_threads=$(nproc)
   true &  # nothing to train
 else
   shape_args=(--shape-run "$runs/shape_$family")
@@ -37,7 +39,7 @@ else
 fi
 shape=$!
 maps_run=$runs/maps_$family${MAPS_FROM:+_sp}
-OMP_NUM_THREADS=1 "$bin" train maps --config train/maps_cpu.toml --out "$maps_run" \
+OMP_NUM_THREADS=$maps_threads "$bin" train maps --config train/maps_cpu.toml --out "$maps_run" \
   --set data.source="$family" --set data.cache_dir="outputs/data/maps_$family" \
   --set train.iterations="$map_steps" --set specular.iterations="$specular_steps" "${constants[@]}" \
   ${MAPS_FROM:+--maps-from "$MAPS_FROM"} &

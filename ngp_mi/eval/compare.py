@@ -9,9 +9,9 @@ For every shape × view × light setup this renders, times and scores against th
   (render of the maps + shading), the deferred renderers of NGP;
 * the effects the deferred renderers lack, as images of their own: ``direct`` (direct light with
   shadows, no interreflection) and ``direct_unshadowed`` (no shadows either);
-* with a trained ``train maps`` run (``maps_checkpoint``), NGP's images on generated maps (paper
-  Sec. 5 and App. "NGP variants"): NGP-BP, NGP (R_diff ⊕ G_sp^real, when the run has the specular
-  stage), NGP-plus (NGP under the overhead rig plus R_BP of the additional lights; light setup
+* with trained map networks (``maps_checkpoint``: a ``train maps`` run, a model folder or a
+  shipped name), NGP's images on generated maps (paper Sec. 5 and App. "NGP variants"): NGP-BP,
+  NGP (R_diff ⊕ G_sp^real, when there is a specular stage), NGP-plus (NGP under the overhead rig plus R_BP of the additional lights; light setup
   ``rig+random``), and the ablations w/o G_n, w/o G_da and w/o G_sp^real;
 * FID and KID of every method's images against the reference images, when the Inception weights
   are given (``inception_weights``, see :mod:`ngp_mi.eval.fid`).
@@ -29,7 +29,6 @@ the full frame and on the object only (mask from the G-buffer).
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import statistics
 import time
@@ -48,9 +47,7 @@ from ngp_mi.eval.metrics import (added_light_placement, fid_from_features, flip,
                                  nyquist_power_fraction, psnr, ssim)
 from ngp_mi.eval.report import COMPARE_METRICS, SPECULAR_METRICS, plot_speed_accuracy, write_compare_report
 from ngp_mi.lights import Light, overhead_rig
-from ngp_mi.models.checkpoint import newest_readable
-from ngp_mi.models.maps import MapsModel
-from ngp_mi.models.specular import SpecularModel
+from ngp_mi.models.pretrained import load_ngp_networks, trained_source
 from ngp_mi.nets.networks import check_image_size
 from ngp_mi.pipeline import ngp_image
 from ngp_mi.render.gbuffer import GBufferRenderer, maps_to_tensors
@@ -61,7 +58,7 @@ from ngp_mi.viz import contact_sheet, linear_to_srgb, save_png, to_uint8
 
 @dataclasses.dataclass(frozen=True)
 class CompareConfig:
-    source: str | None = None  # None: the maps run's family ([data] source of its recipe), else chair
+    source: str | None = None  # None: the family the map networks trained on ([data] source), else chair
     num_shapes: int = 3
     views: int = 2
     resolution: int = 128
@@ -71,7 +68,7 @@ class CompareConfig:
     seed: int = 0
     # R_BP's constants; None: the trained model's (with maps_checkpoint), else the paper's for the source's family
     constants: Constants | None = None
-    maps_checkpoint: str | None = None  # a `train maps` run: adds NGP's variants and ablations
+    maps_checkpoint: str | None = None  # a `train maps` run or a model: adds NGP's variants and ablations
     inception_weights: str | None = None  # inception-2015-12-05.pt: adds FID / KID
 
 
@@ -115,16 +112,6 @@ def _timed(fn: Callable[[], np.ndarray]) -> tuple[np.ndarray, float]:
     return image, time.perf_counter() - start
 
 
-def trained_source(run: str | None) -> str:
-    """The ``[data] source`` a ``train maps`` run trained on (its newest checkpoint's recipe): the
-    shapes its maps are compared on by default, so a car run is not scored on chairs; chair without
-    a run."""
-    if run is None:
-        return "chair"
-    tables = json.loads(newest_readable(run)[1]["config"])
-    return tables.get("data", {}).get("source", "chair")
-
-
 def run_compare(config: CompareConfig, out: str | Path, log=print) -> dict[str, Any]:
     """Render, time and score every method; write images, ``results.json`` and ``report.html``."""
     out = Path(out)
@@ -135,12 +122,13 @@ def run_compare(config: CompareConfig, out: str | Path, log=print) -> dict[str, 
     inception = None
     if config.inception_weights:
         inception = InceptionFeatures(config.inception_weights)
-    if config.source is None:
-        config = dataclasses.replace(config, source=trained_source(config.maps_checkpoint))
+    if config.source is None:  # a car model is scored on cars, not on the default chairs
+        config = dataclasses.replace(config, source=trained_source(config.maps_checkpoint)
+                                     if config.maps_checkpoint else "chair")
     items = resolve_source(config.source, config.num_shapes, config.seed)
     model = specular = None
     if config.maps_checkpoint:
-        model, specular = MapsModel.from_run(config.maps_checkpoint), SpecularModel.from_run(config.maps_checkpoint)
+        model, specular = load_ngp_networks(config.maps_checkpoint)
     if config.constants is None:
         config = dataclasses.replace(config, constants=model.config.constants if model is not None
                                      else Constants.of_family(config.source))

@@ -249,6 +249,25 @@ def load_map_networks(run_or_model: str | Path) -> tuple[MapsModel, str]:
     return maps, str(resolve(run_or_model))
 
 
+def load_ngp_networks(run_or_model: str | Path) -> tuple[MapsModel, SpecularModel | None]:
+    """The map networks and G_sp^real (None when there is no such stage) of a ``train maps`` run's
+    newest checkpoint or of a model folder / shipped name."""
+    if is_training_run(run_or_model):
+        maps, _ = load_map_networks(run_or_model)
+        return maps, SpecularModel.from_run(run_or_model)
+    maps, specular, *_ = load_model(run_or_model)
+    return maps, specular
+
+
+def trained_source(run_or_model: str | Path) -> str:
+    """The ``[data] source`` the map networks of a ``train maps`` run (its newest checkpoint's recipe)
+    or of a model folder / shipped name (its card's maps recipe, else its family) were trained on."""
+    if is_training_run(run_or_model):
+        return json.loads(newest_readable(run_or_model)[1]["config"]).get("data", {}).get("source", "chair")
+    card = json.loads((resolve(run_or_model) / "card.json").read_text())
+    return card.get("maps", {}).get("recipe", {}).get("data", {}).get("source") or card.get("family") or "chair"
+
+
 def coarse_shapes(run_or_model: str | Path, resolution: int) -> CoarseShapes:
     """The ``reconstruct`` of ``render-dataset --coarse-shapes`` and ``[data] coarse_shapes``: a
     ``train shape`` run's or a model's G_shape, checked here for its encoder (not per shape, in the

@@ -1,5 +1,6 @@
 """ngp-mi compare: outputs, the path-tracing ladder, and radiometric agreement of R_diff."""
 
+import dataclasses
 import json
 import math
 
@@ -8,9 +9,10 @@ import pytest
 import torch
 
 from ngp_mi.camera import Camera
-from ngp_mi.eval.compare import CompareConfig, run_compare, trained_source
+from ngp_mi.eval.compare import CompareConfig, run_compare
 from ngp_mi.eval.metrics import psnr
 from ngp_mi.lights import overhead_rig
+from ngp_mi.models.pretrained import export_model, trained_source
 from ngp_mi.render.gbuffer import GBufferRenderer, maps_to_tensors
 from ngp_mi.render.scene import build_scene, diffuse_bsdf, render
 from ngp_mi.render.shading import shade
@@ -48,14 +50,40 @@ def test_r_diff_over_pi_equals_unshadowed_lambertian_radiance():
 
 
 def test_without_a_source_compare_scores_the_family_the_maps_trained_on(tmp_path, tiny_maps_run):
-    """A car run compared without --source is scored on cars, not on the default chairs."""
+    """A car run (or a car model folder) compared without --source is scored on cars, not on the default chairs."""
     from ngp_mi.models.checkpoint import save_checkpoint
 
-    assert trained_source(None) == "chair"
     assert trained_source(str(tiny_maps_run)) == "chair"  # the tiny recipe's family
     car_run = tmp_path / "car_run"
     save_checkpoint(car_run, 5, {"G": torch.nn.Linear(1, 1)}, {"config": json.dumps({"data": {"source": "car"}})})
+    (car_run / "recipe.json").write_text("{}")
     assert trained_source(str(car_run)) == "car"
+    folder = export_model(tmp_path / "model", tiny_maps_run, family="car")
+    assert trained_source(folder) == "chair"  # the recipe's data source before the card's family
+    card = json.loads((folder / "card.json").read_text())
+    del card["maps"]["recipe"]["data"]["source"]
+    (folder / "card.json").write_text(json.dumps(card))
+    assert trained_source(folder) == "car"
+
+
+def test_compare_scores_a_model_folder_as_the_run_it_was_exported_from(tmp_path, tiny_maps_run):
+    """`compare --model DIR` (and a shipped name) loads the same map networks and G_sp^real as the run."""
+    from ngp_mi.cli import main
+
+    folder = export_model(tmp_path / "model", tiny_maps_run)
+    config = CompareConfig(num_shapes=1, views=1, resolution=32, light_setups=("rig",), spp_ladder=(1,),
+                           reference_spp=16)
+    scores = {}
+    for name, networks in (("run", tiny_maps_run), ("folder", folder)):
+        summary = run_compare(dataclasses.replace(config, maps_checkpoint=str(networks)), tmp_path / name,
+                              log=lambda *_: None)
+        scores[name] = {s["method"]: s["psnr_linear"] for s in summary if s["kind"] == "neural"}
+    assert "NGP: R_diff ⊕ G_sp^real" in scores["run"] and scores["folder"] == scores["run"]
+    with pytest.raises(ValueError, match="'nowhere': not a shipped model"):
+        run_compare(dataclasses.replace(config, maps_checkpoint="nowhere"), tmp_path / "x", log=lambda *_: None)
+    assert main(["compare", "--out", str(tmp_path / "cli"), "--model", str(folder), "--num-shapes", "1", "--views",
+                 "1", "--res", "32", "--lights", "rig", "--spp-ladder", "1", "--reference-spp", "16"]) == 0
+    assert json.loads((tmp_path / "cli" / "results.json").read_text())["config"]["maps_checkpoint"] == str(folder)
 
 
 def test_compare_with_trained_map_networks_and_fid(tmp_path, tiny_maps_run):
