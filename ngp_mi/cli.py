@@ -235,7 +235,8 @@ def train_flags(p: argparse.ArgumentParser) -> None:
                    help="override a recipe value (TOML syntax; bare words are strings), checked like the file; "
                         "repeatable, recorded in OUT/recipe.json. E.g. --set train.iterations=500")
     p.add_argument("--maps-from", metavar="RUN",
-                   help="maps only: start from RUN's map networks at step [train] iterations and train the "
+                   help="maps only: start from RUN's map networks at step [train] iterations (or from a model "
+                        "folder's or shipped model's, with the recipe's [model] as its card's) and train the "
                         "G_sp^real stage alone (its switches, or a re-trained stage, on trained map networks)")
 
 

@@ -9,7 +9,8 @@
 # the card records the steps taken. The shape prior and the map networks share nothing, so they
 # train side by side, one CPU thread each. SHAPE_FROM=MODEL (a shipped name or a model folder)
 # keeps that model's shape prior and re-trains the maps only, on all the cores. MAPS_FROM=RUN (a maps run that reached
-# MAP_STEPS) keeps its map networks and re-trains the G_sp^real stage only, into maps_FAMILY_sp.
+# MAP_STEPS, or a model folder / shipped name) keeps its map networks and re-trains the G_sp^real stage only, into
+# maps_FAMILY_sp; SEED=N sets [train] seed (the shipped car's stage: SEED=2, chosen on other cars, bench/RESULTS.md).
 set -euo pipefail
 family=${1:?usage: scripts/ship-model.sh chair|car [MAP_STEPS] [SPECULAR_STEPS]}
 map_steps=${2:-4000}
@@ -42,7 +43,7 @@ maps_run=$runs/maps_$family${MAPS_FROM:+_sp}
 OMP_NUM_THREADS=$maps_threads "$bin" train maps --config train/maps_cpu.toml --out "$maps_run" \
   --set data.source="$family" --set data.cache_dir="outputs/data/maps_$family" \
   --set train.iterations="$map_steps" --set specular.iterations="$specular_steps" "${constants[@]}" \
-  ${MAPS_FROM:+--maps-from "$MAPS_FROM"} &
+  ${SEED:+--set train.seed="$SEED"} ${MAPS_FROM:+--maps-from "$MAPS_FROM"} &
 maps=$!
 wait "$shape"
 wait "$maps"
@@ -55,4 +56,4 @@ wait "$maps"
   --seed 500 --lights rig --maps-checkpoint "$maps_run"
 "$bin" export-model --maps-run "$maps_run" "${shape_args[@]}" \
   --out "ngp_mi/pretrained/$family" --family "$family" \
-  --notes "${SHAPE_FROM:+SHAPE_FROM=$SHAPE_FROM }${MAPS_FROM:+MAPS_FROM=$MAPS_FROM }scripts/ship-model.sh $family $map_steps $specular_steps on $(nproc --all) CPU cores, $(date -u +%F)"
+  --notes "${SHAPE_FROM:+SHAPE_FROM=$SHAPE_FROM }${MAPS_FROM:+MAPS_FROM=$MAPS_FROM }${SEED:+SEED=$SEED }scripts/ship-model.sh $family $map_steps $specular_steps on $(nproc --all) CPU cores, $(date -u +%F)"

@@ -80,10 +80,13 @@ def _sha256(path: Path) -> str:
 
 
 def _run_facts(run: Path) -> dict[str, Any]:
-    """Steps, training time and recipe of a run (from its newest checkpoint and log)."""
+    """Steps, training time and recipe of a run (from its newest checkpoint and log); for a run whose
+    map networks came from a model folder (``train maps --maps-from``), that card's facts of them."""
     path, state = newest_readable(run)
     facts: dict[str, Any] = {"run": str(run), "checkpoint": path.name, "steps": int(state["step"]),
                              "recipe": json.loads(state["config"]) if "config" in state else None}
+    if (run / "maps_from.json").exists():
+        facts["map_networks_from"] = json.loads((run / "maps_from.json").read_text())
     log = run / "log.jsonl"
     if log.exists():
         times = [json.loads(line).get("time") for line in log.read_text().splitlines() if line.strip()]

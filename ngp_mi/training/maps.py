@@ -248,12 +248,42 @@ def seed_from_maps_run(source: str | Path, run: str | Path, iterations: int) -> 
         save_file(tensors, folder / "weights.safetensors")
 
 
+def seed_from_model(source: str | Path, run: str | Path, iterations: int, recipe: "MapsRecipe") -> None:
+    """Start ``run`` from the map networks of a model folder or shipped model (``export-model``'s
+    output), as :func:`seed_from_maps_run` does from a run: a checkpoint at step ``iterations``
+    holds the folder's G_n, G_da and E_da (the trained copies under ``ema`` too); the networks a model
+    does not ship (the discriminators, G_depth) are built as the recipe builds them, and the G_sp^real
+    stage, which reads only the shipped three, is trained alone. The recipe's ``[model]`` must be the
+    card's: another k_d, say, would change the diffuse images the stage learns from. The card's
+    facts of the map networks (run, steps, training time, figures) go to ``maps_from.json``, which
+    ``export-model`` carries onto the new card."""
+    run = Path(run)
+    if not (run / "maps_from.json").exists():
+        card = json.loads((pretrained.resolve(source) / "card.json").read_text())
+        write_text(run / "maps_from.json", json.dumps({"model": str(source), **card.get("maps", {})}, indent=1))
+    if (run / f"ckpt-{iterations:08d}").exists():
+        return  # seeded before (a resumed run)
+    shipped, _, _, _ = pretrained.load_model(source)
+    ours = dataclasses.asdict(recipe.model)
+    differ = [f"{key} ({value!r} in the recipe, {theirs!r} in the card)"
+              for key, value in ours.items() if value != (theirs := getattr(shipped.config, key))]
+    if differ:
+        raise ValueError(f"--maps-from {source}: the recipe's [model] differs from the model's card.json in "
+                         f"{', '.join(differ)}; set them to the card's (--set model.FIELD=VALUE)")
+    torch.manual_seed(recipe.train.seed)
+    model = MapsModel(recipe.model)
+    for name in pretrained.INFERENCE_NETWORKS["maps"]:
+        for copy in (name, f"{name}_train") if recipe.model.ema else (name,):
+            getattr(model, copy).load_state_dict(getattr(shipped, name).state_dict())
+    loop.save(run, iterations, [model], recipe.tables)
+
+
 def train_maps(config_path: str | Path, log=print, out: str | Path | None = None, overrides: Sequence[str] = (),
                maps_from: str | Path | None = None) -> Path:
     """Train (or resume training) as the recipe says; ``out`` replaces ``[train] out``. With
-    ``maps_from`` (a run whose map stage reached ``[train] iterations``) the run starts from its map
-    networks there and trains the G_sp^real stage only (:func:`seed_from_maps_run`). Returns the
-    output folder."""
+    ``maps_from`` (a run whose map stage reached ``[train] iterations``, or a model folder / shipped
+    name) the run starts from its map networks there and trains the G_sp^real stage only
+    (:func:`seed_from_maps_run`, :func:`seed_from_model`). Returns the output folder."""
     overrides = [*overrides, *([out_override(out)] if out else [])]
     recipe = MapsRecipe.read(config_path, overrides)
     train = recipe.train
@@ -262,8 +292,10 @@ def train_maps(config_path: str | Path, log=print, out: str | Path | None = None
     if maps_from is not None:
         if recipe.specular is None:
             raise ValueError(f"{config_path}: --maps-from trains the [specular] stage only, and the recipe has none")
-        if rank == 0:
+        if rank == 0 and pretrained.is_training_run(maps_from):
             seed_from_maps_run(maps_from, out, train.iterations)
+        elif rank == 0:
+            seed_from_model(maps_from, out, train.iterations, recipe)
         loop.barrier()
     maps_root, depth_root = prepare_data(recipe.data, rank)
     maps = maps_dataset(recipe.model, recipe.data, maps_root, depth_root, log if rank == 0 else None)

@@ -126,6 +126,36 @@ def test_maps_from_trains_the_specular_stage_alone_on_another_runs_map_networks(
                    out=tmp_path / "other", maps_from=source)
 
 
+def test_maps_from_a_model_folder_trains_its_specular_stage_on_the_shipped_map_networks(tmp_path):
+    """--maps-from takes a model folder (a shipped model's G_sp^real stage re-trained): the seeded
+    checkpoint holds the folder's G_n, G_da, E_da (averaged and trained copies under ema), the stage
+    trains on them unchanged; a recipe whose [model] is not the card's fails naming the field."""
+    from ngp_mi.models.pretrained import export_model
+
+    recipe = maps_recipe(tmp_path, "source", iterations=2, device='"cpu"')
+    folder = export_model(tmp_path / "model", train_maps(recipe, log=lambda *_: None, overrides=["model.ema=0.5"]))
+    shipped = {k.removeprefix("maps."): v for k, v in load_file(folder / "maps.safetensors").items()
+               if k.startswith("maps.")}
+    out = train_maps(recipe, log=lambda *_: None, out=tmp_path / "stage", maps_from=folder,
+                     overrides=["model.ema=0.5"])
+    records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert [r["stage"] for r in records] == ["specular"] * 3
+    assert [p.name for p in list_checkpoints(out)][0] == "ckpt-00000002"
+    final = weights(out)
+    for key, value in shipped.items():
+        assert torch.equal(final[key], value), key  # the shipped networks, fixed through the stage
+        name, rest = key.split(".", 1)
+        assert torch.equal(final[f"{name}_train.{rest}"], value), key
+    assert "G_sp.encoder.0.1.weight" in final
+    card = json.loads((export_model(tmp_path / "re-trained", out) / "card.json").read_text())
+    source_card = json.loads((folder / "card.json").read_text())
+    assert card["maps"]["steps"] == 5 and card["maps"]["map_networks_from"]["model"] == str(folder)
+    assert card["maps"]["map_networks_from"]["steps"] == source_card["maps"]["steps"] == 5
+    with pytest.raises(ValueError, match=r"card\.json in k_d \(0\.5 in the recipe, 0\.\d+ in the card\)"):
+        train_maps(recipe, log=lambda *_: None, out=tmp_path / "other", maps_from=folder,
+                   overrides=["model.ema=0.5", "model.k_d=0.5"])
+
+
 def test_coarse_shapes_from_a_model_folder(tmp_path):
     """[data] coarse_shapes takes a shipped model's name as render-dataset --coarse-shapes does: the
     depth folder holds its reconstructions (same ids, other depth); a folder without an encoder, or
