@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import gc
 import json
 import time
 from pathlib import Path
@@ -574,7 +575,12 @@ def fit_shape(config: FitConfig, out: str | Path, shape_model: Any = None, ngp: 
     into ``out``: a second one is refused, naming the first (:mod:`ngp_mi.lock`)."""
     out = Path(out)
     with lock.exclusive(out / "fit-shape.lock", f"the fit in {out}"):
-        return _fit_shape(config, out, shape_model, ngp, log)
+        summary = _fit_shape(config, out, shape_model, ngp, log)
+    # matplotlib's tight_layout can leave a reference cycle through our frames (an exception it catches
+    # during an import), which keeps the vertices' Cholesky factor alive; freed only at interpreter
+    # exit, after cholespy's module, nanobind reports it there as a leak (`make demo` printed it)
+    gc.collect()
+    return summary
 
 
 def _fit_shape(config: FitConfig, out: Path, shape_model: Any, ngp: Any, log: Callable[[str], None]) -> dict[str, Any]:
