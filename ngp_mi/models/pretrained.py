@@ -39,6 +39,9 @@ INFERENCE_NETWORKS = {"maps": ("G_n", "G_da", "E_da"), "specular": ("G_sp",), "s
 # code of its coarse version (`--coarse-shapes`); rounded, its reconstructions keep their IoU (bench/RESULTS.md)
 # and both families' encoders fit the 30 MB the shipped models may take. What the images depend on stays float32.
 HALF_PRECISION = {"shape": ("encoder",)}
+# In a `train maps` run whose map networks came from a model folder (`--maps-from FOLDER`): that card's
+# facts of them, which `export-model` carries onto the new card as `maps.map_networks_from`.
+MAPS_FROM_FACTS = "maps_from.json"
 
 
 def available() -> list[str]:
@@ -85,8 +88,8 @@ def _run_facts(run: Path) -> dict[str, Any]:
     path, state = newest_readable(run)
     facts: dict[str, Any] = {"run": str(run), "checkpoint": path.name, "steps": int(state["step"]),
                              "recipe": json.loads(state["config"]) if "config" in state else None}
-    if (run / "maps_from.json").exists():
-        facts["map_networks_from"] = json.loads((run / "maps_from.json").read_text())
+    if (run / MAPS_FROM_FACTS).exists():
+        facts["map_networks_from"] = json.loads((run / MAPS_FROM_FACTS).read_text())
     log = run / "log.jsonl"
     if log.exists():
         times = [json.loads(line).get("time") for line in log.read_text().splitlines() if line.strip()]

@@ -255,15 +255,12 @@ def seed_from_model(source: str | Path, run: str | Path, iterations: int, recipe
     does not ship (the discriminators, G_depth) are built as the recipe builds them, and the G_sp^real
     stage, which reads only the shipped three, is trained alone. The recipe's ``[model]`` must be the
     card's: another k_d, say, would change the diffuse images the stage learns from. The card's
-    facts of the map networks (run, steps, training time, figures) go to ``maps_from.json``, which
-    ``export-model`` carries onto the new card."""
+    facts of the map networks (run, steps, training time, figures) go to ``maps_from.json``
+    (:data:`~ngp_mi.models.pretrained.MAPS_FROM_FACTS`), which ``export-model`` carries onto the new card."""
     run = Path(run)
-    if not (run / "maps_from.json").exists():
-        card = json.loads((pretrained.resolve(source) / "card.json").read_text())
-        write_text(run / "maps_from.json", json.dumps({"model": str(source), **card.get("maps", {})}, indent=1))
     if (run / f"ckpt-{iterations:08d}").exists():
         return  # seeded before (a resumed run)
-    shipped, _, _, _ = pretrained.load_model(source)
+    shipped, _, _, card = pretrained.load_model(source)
     ours = dataclasses.asdict(recipe.model)
     differ = [f"{key} ({value!r} in the recipe, {theirs!r} in the card)"
               for key, value in ours.items() if value != (theirs := getattr(shipped.config, key))]
@@ -273,8 +270,10 @@ def seed_from_model(source: str | Path, run: str | Path, iterations: int, recipe
     torch.manual_seed(recipe.train.seed)
     model = MapsModel(recipe.model)
     for name in pretrained.INFERENCE_NETWORKS["maps"]:
-        for copy in (name, f"{name}_train") if recipe.model.ema else (name,):
-            getattr(model, copy).load_state_dict(getattr(shipped, name).state_dict())
+        for target in (name, f"{name}_train") if recipe.model.ema else (name,):
+            getattr(model, target).load_state_dict(getattr(shipped, name).state_dict())
+    # before the checkpoint, which marks the run as seeded
+    write_text(run / pretrained.MAPS_FROM_FACTS, json.dumps({"model": str(source), **card.get("maps", {})}, indent=1))
     loop.save(run, iterations, [model], recipe.tables)
 
 
