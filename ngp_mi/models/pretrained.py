@@ -104,6 +104,13 @@ def _run_facts(run: Path) -> dict[str, Any]:
     return facts
 
 
+def _provenance(name_or_path: str | Path, card: dict[str, Any], file: str) -> dict[str, Any]:
+    """Where a kept part came from, in facts that outlive the folder: a folder given by path is often a
+    local copy (a shipped model before its re-export), so its notes and the part's sha256 name it too."""
+    return {"model": str(name_or_path), "notes": card.get("notes", ""),
+            "sha256": ((card.get("files") or {}).get(file) or {}).get("sha256")}
+
+
 def training_seconds(times: list[float]) -> float:
     """Wall time of a run from its log's times, which restart from 0 in each resumed process: the
     sum of each process's last time."""
@@ -136,7 +143,7 @@ def export_model(out: str | Path, maps_run: str | Path, shape_run: str | Path | 
         *_, shape, kept_card = load_model(shape_from)  # read (and sha-checked) before out is written
         if shape is None:
             raise ValueError(f"export-model --shape-from {shape_from}: that model has no G_shape (shape.safetensors)")
-        shape_facts = {**kept_card["shape"], "kept_from": str(shape_from)}
+        shape_facts = {**kept_card["shape"], "kept_from": _provenance(shape_from, kept_card, "shape.safetensors")}
     out.mkdir(parents=True, exist_ok=True)
     tensors = _tensors(maps, INFERENCE_NETWORKS["maps"], "maps")
     configs: dict[str, Any] = {"maps": maps.config_dict()["maps"]}
