@@ -135,7 +135,7 @@ def table(figures: dict[tuple[str, str], dict], goals: list[str]) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--candidate", action="append", required=True, metavar="NAME=FOLDER",
-                        help="a model folder or shipped name; the first is the incumbent")
+                        help="a model folder or shipped name; the first is the incumbent (alone: measured, no choice)")
     parser.add_argument("--validation", required=True, metavar="DATA,COARSE,SEED,SxV")
     parser.add_argument("--test", metavar="DATA,COARSE,SEED,SxV", help="figures reported, never used to choose")
     parser.add_argument("--goals", default=",".join(GOALS),
@@ -144,8 +144,8 @@ def main() -> None:
     parser.add_argument("--out", default="outputs/bench/choose-model")
     args = parser.parse_args()
     candidates = dict(item.split("=", 1) for item in args.candidate)
-    if len(candidates) < 2 or any(not name or not folder for name, folder in candidates.items()):
-        raise SystemExit("--candidate NAME=FOLDER, at least two (the first is the incumbent)")
+    if any(not name or not folder for name, folder in candidates.items()):
+        raise SystemExit("--candidate NAME=FOLDER (the first is the incumbent)")
     goals = [key.strip() for key in args.goals.split(",") if key.strip()]
     if not goals or (unknown := [key for key in goals if key not in GOALS]):
         raise SystemExit(f"--goals {args.goals!r}: expected some of {', '.join(GOALS)}")
@@ -156,8 +156,10 @@ def main() -> None:
         for name, folder in candidates.items():
             print(f"{shape_set.name}: {name} ({folder})", flush=True)
             figures[name, shape_set.name] = measure(folder, shape_set, out / shape_set.name / name)
-    chosen, why = choose({name: figures[name, "validation"] for name in candidates}, goals, args.flip_tolerance)
     print(table(figures, goals))
+    if len(candidates) == 1:  # the incumbent measured ahead of its challengers
+        return
+    chosen, why = choose({name: figures[name, "validation"] for name in candidates}, goals, args.flip_tolerance)
     print(f"\nchosen by the validation set: {why}")
     write_json(out / "decision.json", {"chosen": chosen, "folder": candidates[chosen], "why": why,
                                        "goals": {key: GOALS[key][0] for key in goals},
