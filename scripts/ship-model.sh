@@ -10,7 +10,7 @@
 # train side by side, one CPU thread each. SHAPE_FROM=MODEL (a shipped name or a model folder)
 # keeps that model's shape prior and re-trains the maps only, on all the cores. MAPS_FROM=RUN (a maps run that reached
 # MAP_STEPS, or a model folder / shipped name) keeps its map networks and re-trains the G_sp^real stage only, into
-# maps_FAMILY_sp; SEED=N sets [train] seed (the shipped chair: SEED=1, the car's stage: SEED=2, each chosen on other shapes, bench/RESULTS.md).
+# maps_FAMILY_sp; SEED=N sets [train] seed (the shipped chair and car: SEED=1, chosen on other shapes, bench/RESULTS.md).
 set -euo pipefail
 family=${1:?usage: scripts/ship-model.sh chair|car [MAP_STEPS] [SPECULAR_STEPS]}
 map_steps=${2:-4000}
