@@ -143,7 +143,10 @@ def export_model(out: str | Path, maps_run: str | Path, shape_run: str | Path | 
         *_, shape, kept_card = load_model(shape_from)  # read (and sha-checked) before out is written
         if shape is None:
             raise ValueError(f"export-model --shape-from {shape_from}: that model has no G_shape (shape.safetensors)")
-        shape_facts = {**kept_card["shape"], "kept_from": _provenance(shape_from, kept_card, "shape.safetensors")}
+        kept_from = _provenance(shape_from, kept_card, "shape.safetensors")
+        if resolve(shape_from).resolve() == out.resolve() and isinstance(kept_card["shape"].get("kept_from"), dict):
+            kept_from = kept_card["shape"]["kept_from"]  # re-exported over itself: the prior came from where it did
+        shape_facts = {**kept_card["shape"], "kept_from": kept_from}
     out.mkdir(parents=True, exist_ok=True)
     tensors = _tensors(maps, INFERENCE_NETWORKS["maps"], "maps")
     configs: dict[str, Any] = {"maps": maps.config_dict()["maps"]}

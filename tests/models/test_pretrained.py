@@ -91,6 +91,10 @@ def test_export_model_keeps_another_models_shape_prior_when_only_the_maps_are_re
     assert card["shape"]["kept_from"] == {"model": str(folder), "notes": original_card["notes"],
                                           "sha256": original_card["files"]["shape.safetensors"]["sha256"]}
     assert card["files"]["shape.safetensors"]["sha256"] == card["shape"]["kept_from"]["sha256"]
+    # exported again over itself (a maps re-ship in place), the prior keeps naming where it came from
+    assert main(["export-model", "--maps-run", str(maps_run), "--shape-from", str(tmp_path / "m"), "--out",
+                 str(tmp_path / "m"), "--notes", "re-shipped"]) == 0
+    assert load_model(tmp_path / "m")[3]["shape"]["kept_from"] == card["shape"]["kept_from"]
     assert card["configs"]["shape"] == original_card["configs"]["shape"]
     assert main(["export-model", "--maps-run", str(maps_run), "--shape-from", str(folder), "--shape-run",
                  str(shape_run), "--out", str(tmp_path / "x")]) == 1
