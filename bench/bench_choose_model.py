@@ -147,8 +147,10 @@ def main() -> None:
     if any(not name or not folder for name, folder in candidates.items()):
         raise SystemExit("--candidate NAME=FOLDER (the first is the incumbent)")
     goals = [key.strip() for key in args.goals.split(",") if key.strip()]
-    if not goals or (unknown := [key for key in goals if key not in GOALS]):
-        raise SystemExit(f"--goals {args.goals!r}: expected some of {', '.join(GOALS)}")
+    unknown = [key for key in goals if key not in GOALS]
+    if not goals or unknown:
+        raise SystemExit(f"--goals {args.goals!r}: {'unknown ' + ', '.join(unknown) if unknown else 'none given'}; "
+                         f"expected some of {', '.join(GOALS)}")
     sets = [ShapeSet.parse("validation", args.validation)] + ([ShapeSet.parse("test", args.test)] if args.test else [])
     out = Path(args.out)
     figures = {}
