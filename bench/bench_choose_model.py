@@ -14,7 +14,8 @@ and each set (``--validation``; ``--test`` to report):
   prior's reconstructions: G_n's mean angle against the coarse depth's own normals, the exemplar
   L1 and the appearance-diversity ratio;
 * ``compare`` under the rig on ``shapes × views`` of the set's seed: sRGB PSNR / FLIP on the object
-  of NGP without and with G_sp^real.
+  of NGP without and with G_sp^real, and where G_sp^real puts its light and in what hue
+  (``added_light_placement``: precision, recall, colour_deg).
 
 Issue 15's goals (``GOALS``) are counted on the validation set. A candidate replaces the incumbent
 iff it meets at least as many goals and its NGP FLIP is at most ``--flip-tolerance`` above the
@@ -76,8 +77,8 @@ def measure(folder: str, shape_set: ShapeSet, out: Path) -> dict:
     """The goals' figures of one model folder on one set (kept in ``out/figures.json``, reused)."""
     saved = out / "figures.json"
     key = {"model": folder, "set": shape_set.__dict__}
-    if saved.exists() and (figures := json.loads(saved.read_text())).get("key") == key:
-        return figures
+    if saved.exists() and (figures := json.loads(saved.read_text())).get("key") == key and "sp_colour_deg" in figures:
+        return figures  # (figures from before the G_sp^real placement columns are measured again)
     evals = {name: evaluate_maps(folder, shape_set.data, out / name, **kwargs)
              for name, kwargs in (("sigma2", {"coarse_sigma": 2.0}), ("recon", {"coarse_data": shape_set.coarse}))}
     summary = run_compare(CompareConfig(num_shapes=shape_set.shapes, views=shape_set.views, resolution=64,
@@ -95,7 +96,8 @@ def measure(folder: str, shape_set: ShapeSet, out: Path) -> dict:
                "exemplar_l1": evals["sigma2"]["albedo_reconstruction_l1"],
                "diversity": evals["sigma2"]["appearance_diversity_ratio"],
                "no_sp_psnr": rows[NO_SP_METHOD]["psnr_srgb_masked"], "no_sp_flip": rows[NO_SP_METHOD]["flip_masked"],
-               "ngp_psnr": rows[NGP_METHOD]["psnr_srgb_masked"], "ngp_flip": rows[NGP_METHOD]["flip_masked"]}
+               "ngp_psnr": rows[NGP_METHOD]["psnr_srgb_masked"], "ngp_flip": rows[NGP_METHOD]["flip_masked"],
+               **{f"sp_{k}": rows[NGP_METHOD][f"specular_{k}"] for k in ("precision", "recall", "colour_deg")}}
     write_json(saved, figures)
     return figures
 
@@ -123,12 +125,15 @@ def choose(validation: dict[str, dict], goals: list[str], flip_tolerance: float)
 
 def table(figures: dict[tuple[str, str], dict], goals: list[str]) -> str:
     lines = ["| model | set | G_n on reconstructions: ° (better by) | G_n on σ 2 px | exemplar L1 | diversity "
-             "| NGP w/o G_sp^real | NGP | goals met |", "|" + "---|" * 9]
+             "| NGP w/o G_sp^real | NGP | G_sp^real's light: precision / recall / hue error ° | goals met |",
+             "|" + "---|" * 10]
     for (name, set_name), f in figures.items():
         lines.append(f"| {name} | {set_name} | {f['gn_recon']:.2f} ({f['gn_gain_recon']:.2f}°) "
                      f"| {f['gn_sigma2']:.2f} ({f['gn_gain_sigma2']:.2f}°) | {f['exemplar_l1']:.3f} "
                      f"| {f['diversity']:.2f} | {f['no_sp_psnr']:.2f} / {f['no_sp_flip']:.3f} "
-                     f"| {f['ngp_psnr']:.2f} / {f['ngp_flip']:.3f} | {len(goals_met(f, goals))} of {len(goals)} |")
+                     f"| {f['ngp_psnr']:.2f} / {f['ngp_flip']:.3f} "
+                     f"| {f['sp_precision']:.2f} / {f['sp_recall']:.2f} / {f['sp_colour_deg']:.1f} "
+                     f"| {len(goals_met(f, goals))} of {len(goals)} |")
     return "\n".join(lines)
 
 

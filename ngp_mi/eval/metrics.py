@@ -56,17 +56,36 @@ def added_light_placement(reference: np.ndarray, base: np.ndarray, composite: np
     * precision = Σ min(A, E) / Σ A — the share of the added light the reference also has (1: none
       lands where the reference is no brighter than the base);
     * recall = Σ min(A, E) / Σ E — the share of the reference's excess the layer supplies;
-    * added = mean A per pixel and channel.
+    * added = mean A per pixel and channel;
+    * colour_deg = the mean angle between the RGB vectors A_p and E_p of a pixel, in degrees,
+      weighted by the light they share there, w_p = min(‖A_p‖, ‖E_p‖) (0: the layer's light has the
+      hue of the reference's excess wherever both exist, e.g. body-coloured where the reference's
+      highlight is; a grey layer on a saturated excess, or multicoloured speckle, scores high).
 
-    An empty sum gives 1 for precision or recall (nothing added, nothing missed). For NGP the base
-    is R_diff / π and the layer G_sp^real ("highlights where the reference has them")."""
+    An empty sum gives 1 for precision or recall (nothing added, nothing missed) and 0 for
+    colour_deg (no shared light, no hue to miss). For NGP the base is R_diff / π and the layer
+    G_sp^real ("highlights where the reference has them")."""
     added = np.maximum(_select(np.asarray(composite, np.float64) - base, mask), 0.0)
     excess = np.maximum(_select(np.asarray(reference, np.float64) - base, mask), 0.0)
     matched = float(np.minimum(added, excess).sum())
     total_added, total_excess = float(added.sum()), float(excess.sum())
     return {"precision": matched / total_added if total_added > 0 else 1.0,
             "recall": matched / total_excess if total_excess > 0 else 1.0,
-            "added": float(added.mean())}
+            "added": float(added.mean()),
+            "colour_deg": colour_angle_deg(added.reshape(-1, added.shape[-1]), excess.reshape(-1, excess.shape[-1]))}
+
+
+def colour_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean angle (°) between the rows of ``a`` and ``b`` (N, C), weighted by min(‖a_i‖, ‖b_i‖): how
+    far the hues of two light layers differ where both have light (0 when they share none)."""
+    norm_a, norm_b = np.linalg.norm(a, axis=-1), np.linalg.norm(b, axis=-1)
+    weight = np.minimum(norm_a, norm_b)
+    if not (weight > 0).any():
+        return 0.0
+    both = weight > 0
+    cosine = (a[both] * b[both]).sum(-1) / (norm_a[both] * norm_b[both])
+    angle = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+    return float((weight[both] * angle).sum() / weight[both].sum())
 
 
 def nyquist_power_fraction(image: np.ndarray) -> float:

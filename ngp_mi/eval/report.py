@@ -17,8 +17,10 @@ from ngp_mi.eval.fid import missing_weights_message
 
 COMPARE_METRICS = ("psnr_linear", "ssim_linear", "psnr_srgb", "ssim_srgb", "flip")
 # G_sp^real's light against the reference's excess over the diffuse image (added_light_placement), and
-# the share of its power in a 2-pixel checkerboard (nyquist_power_fraction): NGP's row only
-SPECULAR_METRICS = ("specular_precision", "specular_recall", "specular_added", "specular_nyquist")
+# its hue against the excess's, and the share of its power in a 2-pixel checkerboard
+# (nyquist_power_fraction): NGP's row only
+SPECULAR_METRICS = ("specular_precision", "specular_recall", "specular_added", "specular_colour_deg",
+                    "specular_nyquist")
 
 
 def plot_speed_accuracy(summary: list[dict[str, Any]], path: Path) -> None:

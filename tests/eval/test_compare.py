@@ -105,6 +105,7 @@ def test_compare_with_trained_map_networks_and_fid(tmp_path, tiny_maps_run):
     place = neural["NGP"]  # where G_sp^real's light goes, against the reference's excess over the diffuse image
     assert 0 <= place["specular_precision"] <= 1 and 0 <= place["specular_recall"] <= 1 and place["specular_added"] >= 0
     assert 0 <= place["specular_nyquist"] <= 1 and "<th>specular_nyquist</th>" in report
+    assert 0 <= place["specular_colour_deg"] <= 90 and "<th>specular_colour_deg</th>" in report
     assert "specular_precision" not in neural["NGP w/o G_sp^real"] and "<th>specular_precision</th>" in report
 
 

@@ -73,9 +73,26 @@ def test_added_light_placement_counts_the_light_the_reference_also_has():
     mask = np.zeros((2, 4))
     mask[:, :2] = 1  # the left half only: all the added light is the reference's, a third of its excess
     assert added_light_placement(reference, base, composite, mask) == pytest.approx(
-        {"precision": 1.0, "recall": 1 / 3, "added": 0.1})
+        {"precision": 1.0, "recall": 1 / 3, "added": 0.1, "colour_deg": 0.0}, abs=1e-5)  # grey on grey
     nothing = added_light_placement(base, base, base)  # nothing added, nothing missed
-    assert nothing == {"precision": 1.0, "recall": 1.0, "added": 0.0}
+    assert nothing == {"precision": 1.0, "recall": 1.0, "added": 0.0, "colour_deg": 0.0}
+
+
+def test_added_light_colour_is_the_angle_between_the_layers_hues_where_both_have_light():
+    """A reference whose excess is pure red: a red layer scores 0°, a grey one arccos(1/√3) = 54.7°
+    (the angle of (1, 1, 1) to (1, 0, 0)), a green one 90°; pixels where the reference has no excess
+    do not count, and the mean is weighted by the shared light."""
+    base = np.zeros((1, 3, 3))
+    reference = base.copy()
+    reference[0, :2] = [0.4, 0.0, 0.0]  # red excess on two pixels, none on the third
+    def colour(layer_pixels):
+        composite = base.copy()
+        composite[0] = layer_pixels
+        return added_light_placement(reference, base, composite)["colour_deg"]
+    assert colour([[0.2, 0, 0], [0.3, 0, 0], [0, 0.5, 0]]) == pytest.approx(0.0, abs=1e-5)  # the green one lands off the excess
+    assert colour([[0.1, 0.1, 0.1]] * 3) == pytest.approx(np.degrees(np.arccos(1 / np.sqrt(3))))
+    # red on pixel 0 (0°, shared light 0.2), green on pixel 1 (90°, shared light 0.1): (0.2·0 + 0.1·90) / 0.3
+    assert colour([[0.2, 0, 0], [0, 0.1, 0], [0, 0, 0]]) == pytest.approx(30.0)
 
 
 def test_nyquist_power_fraction_finds_2_pixel_checkerboards_and_stripes():
