@@ -248,13 +248,20 @@ def seed_from_maps_run(source: str | Path, run: str | Path, iterations: int) -> 
         save_file(tensors, folder / "weights.safetensors")
 
 
+# [model] fields a G_sp^real stage re-trained on a model's map networks may change: R_diff's own k_d
+# scales the diffuse images the stage reads and NGP's image, and nothing in G_n, G_da or E_da
+# (which read depth, NOC and albedo), so the stage can be trained for another energy split.
+RESHADE_FIELDS = ("k_diff",)
+
+
 def seed_from_model(source: str | Path, run: str | Path, iterations: int, recipe: "MapsRecipe") -> None:
     """Start ``run`` from the map networks of a model folder or shipped model (``export-model``'s
     output), as :func:`seed_from_maps_run` does from a run: a checkpoint at step ``iterations``
     holds the folder's G_n, G_da and E_da (the trained copies under ``ema`` too); the networks a model
     does not ship (the discriminators, G_depth) are built as the recipe builds them, and the G_sp^real
     stage, which reads only the shipped three, is trained alone. The recipe's ``[model]`` must be the
-    card's: another k_d, say, would change the diffuse images the stage learns from. The card's
+    card's (another k_d, say, would change the highlights the stage reads), except for
+    :data:`RESHADE_FIELDS`: a stage for R_diff at another ``k_diff`` is what they are for. The card's
     facts of the map networks (run, steps, training time, figures) go to ``maps_from.json``
     (:data:`~ngp_mi.models.pretrained.MAPS_FROM_FACTS`), which ``export-model`` carries onto the new card."""
     run = Path(run)
@@ -262,8 +269,8 @@ def seed_from_model(source: str | Path, run: str | Path, iterations: int, recipe
         return  # seeded before (a resumed run)
     shipped, _, _, card = pretrained.load_model(source)
     ours = dataclasses.asdict(recipe.model)
-    differ = [f"{key} ({value!r} in the recipe, {theirs!r} in the card)"
-              for key, value in ours.items() if value != (theirs := getattr(shipped.config, key))]
+    differ = [f"{key} ({value!r} in the recipe, {theirs!r} in the card)" for key, value in ours.items()
+              if key not in RESHADE_FIELDS and value != (theirs := getattr(shipped.config, key))]
     if differ:
         raise ValueError(f"--maps-from {source}: the recipe's [model] differs from the model's card.json in "
                          f"{', '.join(differ)}; set them to the card's (--set model.FIELD=VALUE)")

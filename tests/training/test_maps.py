@@ -154,6 +154,11 @@ def test_maps_from_a_model_folder_trains_its_specular_stage_on_the_shipped_map_n
     with pytest.raises(ValueError, match=r"card\.json in k_d \(0\.5 in the recipe, 0\.\d+ in the card\)"):
         train_maps(recipe, log=lambda *_: None, out=tmp_path / "other", maps_from=folder,
                    overrides=["model.ema=0.5", "model.k_d=0.5"])
+    # R_diff's own k_d may change (a stage for another energy split): the card then says the new one
+    out = train_maps(recipe, log=lambda *_: None, out=tmp_path / "k_diff", maps_from=folder,
+                     overrides=["model.ema=0.5", "model.k_diff=0.7"])
+    assert json.loads((export_model(tmp_path / "k_diff-model", out) / "card.json").read_text())[
+        "configs"]["maps"]["k_diff"] == 0.7
 
 
 def test_coarse_shapes_from_a_model_folder(tmp_path):
