@@ -213,6 +213,9 @@ def compare_flags(p: argparse.ArgumentParser) -> None:
                         "folder; adds NGP-BP, NGP, NGP-plus and the ablations on generated maps")
     p.add_argument("--inception-weights", help="local inception-2015-12-05.pt (TorchScript): adds FID / KID; "
                                                "never downloaded")
+    p.add_argument("--exemplar-steps", type=at_least(0), default=default(CompareConfig, "exemplar_steps"),
+                   help="also score NGP with z_da refined by this many steps on the exemplar (fit_appearance, "
+                        "beyond the paper; 30 in bench/RESULTS.md) beside μ(E_da) (default: %(default)s, off)")
 
 
 def compare(args: argparse.Namespace) -> int:
@@ -221,7 +224,7 @@ def compare(args: argparse.Namespace) -> int:
     config = CompareConfig(source=args.source, num_shapes=args.num_shapes, views=args.views, resolution=args.res,
                            light_setups=tuple(args.lights.split(",")), spp_ladder=tuple(args.spp_ladder),
                            reference_spp=args.reference_spp, seed=args.seed, maps_checkpoint=args.maps_checkpoint,
-                           inception_weights=args.inception_weights)
+                           inception_weights=args.inception_weights, exemplar_steps=args.exemplar_steps)
     run_compare(config, args.out)
     return 0
 

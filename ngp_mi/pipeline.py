@@ -125,6 +125,33 @@ def generate_albedo(maps: MapsModel, depth: torch.Tensor, mask: torch.Tensor, ca
     return (maps.G_da(torch.cat([noc, normal], 1), z_da) + 1) / 2
 
 
+def fit_appearance(maps: MapsModel, exemplar: torch.Tensor, depth: torch.Tensor, mask: torch.Tensor, camera: Camera,
+                   bounds: np.ndarray, steps: int, lr: float = 0.05) -> torch.Tensor:
+    """z_da for an exemplar albedo map ``exemplar`` (1, 3, H, W) in [0, 1] seen on its own geometry
+    (``depth``, ``mask``, ``camera``): μ(E_da(exemplar)), the paper's encoder, refined by ``steps`` Adam
+    steps on the L1 over the object between G_da(NOC(d), N^g, z_da) and the exemplar
+    (encoder-initialised GAN inversion, beyond the paper; ``steps = 0`` returns μ). G_da's weights
+    stay fixed, so z_da can only pick appearances G_da can paint: it corrects the encoder's colours,
+    which cost NGP's image most of its FLIP over the true maps (bench/RESULTS.md)."""
+    with torch.no_grad():
+        z_da = maps.E_da(2 * exemplar - 1)[0]
+        if steps <= 0:
+            return z_da
+        normal = generate_normals(maps, depth, mask, camera)
+        noc = maps.noc(depth, mask, views_of(camera, bounds))
+        inputs = torch.cat([noc, normal], 1)
+    z_da = z_da.detach().clone().requires_grad_(True)
+    optimiser = torch.optim.Adam([z_da], lr=lr)
+    area = mask.sum().clamp_min(1.0) * exemplar.shape[1]
+    for _ in range(steps):
+        albedo = (maps.G_da(inputs, z_da) + 1) / 2
+        loss = ((albedo - exemplar).abs() * mask).sum() / area
+        (grad,) = torch.autograd.grad(loss, z_da)  # G_da's weights take no gradient
+        z_da.grad = grad
+        optimiser.step()
+    return z_da.detach()
+
+
 def realistic_specular(maps: MapsModel, specular: SpecularModel, normal: torch.Tensor, albedo: torch.Tensor,
                        mask: torch.Tensor, camera: Camera) -> torch.Tensor:
     """G_sp^real(N^g, I_df^g): the learned specular map, from the diffuse image under the training rig

@@ -212,3 +212,30 @@ def test_appearance_by_exemplar_interpolation_and_direct_editing(runs, box_view)
         scene.set_appearance(seed=1, z_da=mu[0])
     with pytest.raises(ValueError, match=r"albedo must be \(1, 3, 32, 32\)"):
         scene.set_appearance(albedo=torch.zeros(1, 3, 16, 16))
+
+
+def test_fit_appearance_starts_at_the_encoder_and_lowers_the_exemplar_error(ngp_and_box):
+    """fit_appearance: 0 steps is μ(E_da(exemplar)); steps on the L1 to an exemplar that G_da itself painted
+    from another z_da bring G_da's albedo closer to it, and leave G_da's weights alone."""
+    from ngp_mi.pipeline import fit_appearance, generate_albedo, generate_normals
+
+    ngp, mesh = ngp_and_box
+    camera = Camera.orbit(15.0, 30.0, 32)
+    view = ngp.render(mesh, camera, ngp.appearance(seed=5), overhead_rig(), "no_sp")
+    depth, mask = view["depth"], view["mask"]
+    exemplar = view["albedo"].detach()
+    with torch.no_grad():
+        mu = ngp.maps.E_da(2 * exemplar - 1)[0]
+    weights = {k: v.clone() for k, v in ngp.maps.G_da.state_dict().items()}
+    assert torch.equal(fit_appearance(ngp.maps, exemplar, depth, mask, camera, mesh.bounds, 0), mu)
+
+    def error(z_da):
+        with torch.no_grad():
+            normal = generate_normals(ngp.maps, depth, mask, camera)
+            albedo = generate_albedo(ngp.maps, depth, mask, camera, mesh.bounds, normal, z_da)
+        return float(((albedo - exemplar).abs() * mask).sum() / (3 * mask.sum()))
+
+    fitted = fit_appearance(ngp.maps, exemplar, depth, mask, camera, mesh.bounds, 40)
+    assert not fitted.requires_grad and fitted.shape == mu.shape
+    assert error(fitted) < error(mu)
+    assert all(torch.equal(v, ngp.maps.G_da.state_dict()[k]) for k, v in weights.items())

@@ -49,7 +49,7 @@ from ngp_mi.eval.report import COMPARE_METRICS, SPECULAR_METRICS, plot_speed_acc
 from ngp_mi.lights import Light, overhead_rig
 from ngp_mi.models.pretrained import load_ngp_networks, trained_source
 from ngp_mi.nets.networks import check_image_size
-from ngp_mi.pipeline import ngp_image
+from ngp_mi.pipeline import fit_appearance, ngp_image
 from ngp_mi.render.gbuffer import GBufferRenderer, maps_to_tensors
 from ngp_mi.render.scene import build_scene, lights_to_mitsuba, render
 from ngp_mi.render.shading import Constants, shade
@@ -69,11 +69,15 @@ class CompareConfig:
     # R_BP's constants; None: the trained model's (with maps_checkpoint), else the paper's for the source's family
     constants: Constants | None = None
     maps_checkpoint: str | None = None  # a `train maps` run or a model: adds NGP's variants and ablations
+    # Beyond the paper: also NGP with and without G_sp^real at z_da refined by this many steps on the
+    # exemplar (:func:`ngp_mi.pipeline.fit_appearance`) beside μ(E_da)'s rows; 0: off
+    exemplar_steps: int = 0
     inception_weights: str | None = None  # inception-2015-12-05.pt: adds FID / KID
 
 
 METRICS = COMPARE_METRICS
 NGP_METHOD, NO_SP_METHOD = "NGP: R_diff ⊕ G_sp^real", "NGP w/o G_sp^real: R_diff on generated maps"
+FITTED = ", z_da fitted to the exemplar"  # suffix of the rows with exemplar_steps
 LIGHT_SETUPS = ("rig", "random", "rig+random")
 
 
@@ -231,14 +235,15 @@ def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: G
             return image[0].permute(1, 2, 0).numpy() / math.pi
         return run
 
-    def neural(variant: str) -> Callable[[], np.ndarray]:
+    def neural(variant: str, fit_steps: int = 0) -> Callable[[], np.ndarray]:
         """One NGP variant (:func:`ngp_mi.pipeline.ngp_image`) on this view, from the ground-truth depth,
-        with the appearance code μ(E_da(ground-truth albedo)) (the exemplar handle)."""
+        with the appearance code μ(E_da(ground-truth albedo)) (the exemplar handle), refined by
+        ``fit_steps`` steps on it (:func:`~ngp_mi.pipeline.fit_appearance`; timed with the rest)."""
         def run() -> np.ndarray:
             t = maps_to_tensors(gbuffer.render(camera))
+            z_da = fit_appearance(model, t["albedo"], t["depth"], t["mask"], camera, content.bounds, fit_steps)
             with torch.no_grad():
-                mu, _ = model.E_da(2 * t["albedo"] - 1)
-                result = ngp_image(model, specular, t["depth"], t["mask"], camera, content.bounds, mu, lights,
+                result = ngp_image(model, specular, t["depth"], t["mask"], camera, content.bounds, z_da, lights,
                                    variant, extra, config.constants)
             return result["image"][0].permute(1, 2, 0).numpy()
         return run
@@ -267,6 +272,9 @@ def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: G
         methods += [(NGP_METHOD, "neural", neural("ngp")),
                     ("NGP w/o G_n: normals from the depth map", "neural", neural("no_gn")),
                     ("NGP w/o G_da: white albedo", "neural", neural("no_gda"))]
+        if config.exemplar_steps > 0:
+            methods += [(NO_SP_METHOD + FITTED, "neural", neural("no_sp", config.exemplar_steps)),
+                        (NGP_METHOD + FITTED, "neural", neural("ngp", config.exemplar_steps))]
         if extra and len(extra) < len(lights):
             methods.append(("NGP-plus: NGP under the rig + R_BP of the added lights", "neural", neural("ngp_plus")))
     rows = [{"method": "reference", "kind": "reference", "seconds": reference_time, "spp": config.reference_spp}]

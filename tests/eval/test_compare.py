@@ -82,8 +82,13 @@ def test_compare_scores_a_model_folder_as_the_run_it_was_exported_from(tmp_path,
     with pytest.raises(ValueError, match="'nowhere': not a shipped model"):
         run_compare(dataclasses.replace(config, maps_checkpoint="nowhere"), tmp_path / "x", log=lambda *_: None)
     assert main(["compare", "--out", str(tmp_path / "cli"), "--model", str(folder), "--num-shapes", "1", "--views",
-                 "1", "--res", "32", "--lights", "rig", "--spp-ladder", "1", "--reference-spp", "16"]) == 0
-    assert json.loads((tmp_path / "cli" / "results.json").read_text())["config"]["maps_checkpoint"] == str(folder)
+                 "1", "--res", "32", "--lights", "rig", "--spp-ladder", "1", "--reference-spp", "16",
+                 "--exemplar-steps", "3"]) == 0
+    results = json.loads((tmp_path / "cli" / "results.json").read_text())
+    assert results["config"]["maps_checkpoint"] == str(folder) and results["config"]["exemplar_steps"] == 3
+    fitted = {s["method"] for s in results["summary"] if s["method"].endswith(", z_da fitted to the exemplar")}
+    assert fitted == {"NGP w/o G_sp^real: R_diff on generated maps, z_da fitted to the exemplar",
+                      "NGP: R_diff ⊕ G_sp^real, z_da fitted to the exemplar"}
 
 
 def test_compare_with_trained_map_networks_and_fid(tmp_path, tiny_maps_run):
