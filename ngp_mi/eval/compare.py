@@ -290,7 +290,9 @@ def _compare_one(config: CompareConfig, content: Any, camera: Camera, gbuffer: G
         rows.append(row)
         tiles.append(to_uint8(image))
         errors.append(flip(linear_to_srgb(reference), linear_to_srgb(image))[1])
-        labels.append(name.split(" (")[0][:22])
+        # the sheet's tiles are narrow: a fitted row keeps its method's head and says so
+        labels.append((name.removesuffix(FITTED).split(":")[0] + ", fitted z_da")[:22] if name.endswith(FITTED)
+                      else name.split(" (")[0][:22])
     error_tiles = [_magma(e) for e in errors]
     error_labels = ["FLIP error"] * len(errors)
     if NGP_METHOD in images and NO_SP_METHOD in images:
