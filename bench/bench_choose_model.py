@@ -52,6 +52,11 @@ GOALS = {
 }
 
 
+# the figures measure() keeps; a change of what it measures bumps it, and older figures are measured again
+# (2: G_sp^real's light's precision, recall and hue)
+FIGURES_FORMAT = 2
+
+
 @dataclass(frozen=True)
 class ShapeSet:
     """Held-out shapes: a ``render-dataset`` folder, its reconstructions, and ``compare``'s set."""
@@ -76,9 +81,9 @@ class ShapeSet:
 def measure(folder: str, shape_set: ShapeSet, out: Path) -> dict:
     """The goals' figures of one model folder on one set (kept in ``out/figures.json``, reused)."""
     saved = out / "figures.json"
-    key = {"model": folder, "set": shape_set.__dict__}
-    if saved.exists() and (figures := json.loads(saved.read_text())).get("key") == key and "sp_colour_deg" in figures:
-        return figures  # (figures from before the G_sp^real placement columns are measured again)
+    key = {"model": folder, "set": shape_set.__dict__, "format": FIGURES_FORMAT}
+    if saved.exists() and (figures := json.loads(saved.read_text())).get("key") == key:
+        return figures
     evals = {name: evaluate_maps(folder, shape_set.data, out / name, **kwargs)
              for name, kwargs in (("sigma2", {"coarse_sigma": 2.0}), ("recon", {"coarse_data": shape_set.coarse}))}
     summary = run_compare(CompareConfig(num_shapes=shape_set.shapes, views=shape_set.views, resolution=64,

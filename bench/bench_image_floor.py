@@ -104,21 +104,20 @@ def main() -> None:
                       "both generated (NGP w/o G_sp^real)": (out["image"][0].permute(1, 2, 0).numpy(), albedo)}
             regions = part_means(albedo, truth, mask)
             images["G_n's normals, G_da's colours averaged over each true part"] = (shaded(out["normal"], regions), regions)
-            seconds = {}
+            seconds = {}  # of the rows with a fitted z_da
             for steps in fit_steps:
-                fitted, seconds[steps] = generated(steps)
-                images[f"both generated, z_da fitted ({steps} steps)"] = (
-                    fitted["image"][0].permute(1, 2, 0).numpy(), fitted["albedo"][0].permute(1, 2, 0).numpy())
+                name = f"both generated, z_da fitted ({steps} steps)"
+                fitted, seconds[name] = generated(steps)
+                images[name] = (fitted["image"][0].permute(1, 2, 0).numpy(), fitted["albedo"][0].permute(1, 2, 0).numpy())
             if args.coverage:
                 for name in ("the true normals and albedo (the floor)", "both generated (NGP w/o G_sp^real)"):
                     image, colours = images[name]
                     images[f"{name}, coverage anti-aliased"] = (coverage_composite(image, mask, alpha), colours)
             for name, (image, colours) in images.items():
-                steps = next((n for n in fit_steps if f"({n} steps)" in name), None)
                 rows.setdefault(name, []).append((
                     psnr(linear_to_srgb(reference), linear_to_srgb(image), mask),
                     flip(linear_to_srgb(reference), linear_to_srgb(image), mask)[0],
-                    float(np.abs(colours - truth)[mask].mean()), seconds.get(steps, float("nan"))))
+                    float(np.abs(colours - truth)[mask].mean()), seconds.get(name, float("nan"))))
     print(f"# bench_image_floor — {time.strftime('%Y-%m-%d')}, model {args.model} ({family}), {args.shapes} × "
           f"{args.views} views from seed {args.seed}, rig, {args.spp}-spp reference; R_diff at k_d {k_diff:g}\n")
     print("| NGP w/o G_sp^real with | sRGB PSNR / FLIP on the object | albedo L1 | fit s per view |\n|---|---|---|---|")

@@ -121,8 +121,13 @@ def generate_albedo(maps: MapsModel, depth: torch.Tensor, mask: torch.Tensor, ca
     """I_da^g = G_da(NOC(d), N^g, z_da) in [0, 1] (paper Eq. image formation), or white (ablation ``no_gda``)."""
     if variant == "no_gda":
         return torch.ones_like(normal)
-    noc = maps.noc(depth, mask, views_of(camera, bounds))
-    return (maps.G_da(torch.cat([noc, normal], 1), z_da) + 1) / 2
+    return (maps.G_da(albedo_condition(maps, depth, mask, camera, bounds, normal), z_da) + 1) / 2
+
+
+def albedo_condition(maps: MapsModel, depth: torch.Tensor, mask: torch.Tensor, camera: Camera, bounds: np.ndarray,
+                     normal: torch.Tensor) -> torch.Tensor:
+    """G_da's condition, NOC(d) beside N^g (the part of its input that does not depend on z_da)."""
+    return torch.cat([maps.noc(depth, mask, views_of(camera, bounds)), normal], 1)
 
 
 def fit_appearance(maps: MapsModel, exemplar: torch.Tensor, depth: torch.Tensor, mask: torch.Tensor, camera: Camera,
@@ -137,14 +142,12 @@ def fit_appearance(maps: MapsModel, exemplar: torch.Tensor, depth: torch.Tensor,
         z_da = maps.E_da(2 * exemplar - 1)[0]
         if steps <= 0:
             return z_da
-        normal = generate_normals(maps, depth, mask, camera)
-        noc = maps.noc(depth, mask, views_of(camera, bounds))
-        inputs = torch.cat([noc, normal], 1)
+        condition = albedo_condition(maps, depth, mask, camera, bounds, generate_normals(maps, depth, mask, camera))
     z_da = z_da.detach().clone().requires_grad_(True)
     optimiser = torch.optim.Adam([z_da], lr=lr)
     area = mask.sum().clamp_min(1.0) * exemplar.shape[1]
     for _ in range(steps):
-        albedo = (maps.G_da(inputs, z_da) + 1) / 2
+        albedo = (maps.G_da(condition, z_da) + 1) / 2
         loss = ((albedo - exemplar).abs() * mask).sum() / area
         (grad,) = torch.autograd.grad(loss, z_da)  # G_da's weights take no gradient
         z_da.grad = grad
