@@ -240,7 +240,8 @@ def train_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--maps-from", metavar="RUN",
                    help="maps only: start from RUN's map networks at step [train] iterations (or from a model "
                         "folder's or shipped model's, with the recipe's [model] as its card's) and train the "
-                        "G_sp^real stage alone (its switches, or a re-trained stage, on trained map networks)")
+                        "later stages alone (the [encoder] and G_sp^real stages: their switches, or re-trained "
+                        "stages, on trained map networks)")
 
 
 def train(args: argparse.Namespace) -> int:

@@ -15,6 +15,7 @@ render without it; :class:`NGP` loads the trained models and renders shapes
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 from typing import BinaryIO, Sequence
@@ -128,6 +129,27 @@ def albedo_condition(maps: MapsModel, depth: torch.Tensor, mask: torch.Tensor, c
                      normal: torch.Tensor) -> torch.Tensor:
     """G_da's condition, NOC(d) beside N^g (the part of its input that does not depend on z_da)."""
     return torch.cat([maps.noc(depth, mask, views_of(camera, bounds)), normal], 1)
+
+
+@dataclasses.dataclass(frozen=True)
+class ExemplarView:
+    """An exemplar albedo map with the geometry it was seen on — what :func:`fit_appearance` reads:
+    ``albedo`` (1, 3, H, W) in [0, 1], ``depth`` and ``mask`` (1, 1, H, W) of the same view, its
+    ``camera`` and the object's ``bounds`` (for the NOC)."""
+    albedo: torch.Tensor
+    depth: torch.Tensor
+    mask: torch.Tensor
+    camera: Camera
+    bounds: np.ndarray
+
+    def __post_init__(self) -> None:
+        h, w = self.camera.height, self.camera.width
+        for name, channels in (("albedo", 3), ("depth", 1), ("mask", 1)):
+            if tuple(getattr(self, name).shape) != (1, channels, h, w):
+                raise ValueError(f"ExemplarView: {name} must be (1, {channels}, {h}, {w}) for its camera, "
+                                 f"got {tuple(getattr(self, name).shape)}")
+        if float(self.mask.sum()) == 0:
+            raise ValueError("ExemplarView: the mask holds no object pixel; there is no albedo to fit")
 
 
 def fit_appearance(maps: MapsModel, exemplar: torch.Tensor, depth: torch.Tensor, mask: torch.Tensor, camera: Camera,
@@ -247,8 +269,13 @@ class NGP:
             raise EmptyShape("G_shape produced an empty shape for this z_s")
         return mesh
 
-    def appearance(self, seed: int | None = None, exemplar: torch.Tensor | None = None) -> torch.Tensor:
-        """z_da: μ(E_da(exemplar albedo (1, 3, H, W) in [0, 1])), or a N(0, I) sample of ``seed``."""
+    def appearance(self, seed: int | None = None, exemplar: torch.Tensor | None = None,
+                   view: ExemplarView | None = None, fit_steps: int = 30) -> torch.Tensor:
+        """z_da: μ(E_da(exemplar albedo (1, 3, H, W) in [0, 1])); for an exemplar ``view`` with its
+        geometry, that code refined by ``fit_steps`` steps on G_da's L1 to it (:func:`fit_appearance`);
+        or a N(0, I) sample of ``seed``."""
+        if view is not None:
+            return fit_appearance(self.maps, view.albedo, view.depth, view.mask, view.camera, view.bounds, fit_steps)
         if exemplar is not None:
             with torch.no_grad():
                 return self.maps.E_da(2 * exemplar - 1)[0]
@@ -371,20 +398,23 @@ class NGPScene:
         return self
 
     def set_appearance(self, z_da: torch.Tensor | None = None, *, seed: int | None = None,
-                       exemplar: torch.Tensor | None = None, albedo: torch.Tensor | None = None) -> "NGPScene":
+                       exemplar: torch.Tensor | None = None, albedo: torch.Tensor | None = None,
+                       exemplar_view: ExemplarView | None = None, fit_steps: int = 30) -> "NGPScene":
         """The appearance: a latent ``z_da``, the latent of ``seed``, μ(E_da(``exemplar``)) of an albedo
-        image (1, 3, H, W) in [0, 1], or an ``albedo`` map (1, 3, H, W) in [0, 1] used as I_da
-        directly (the paper's direct editing; it replaces G_da until another appearance is set)."""
-        if sum(x is not None for x in (z_da, seed, exemplar, albedo)) != 1:
-            raise ValueError("set_appearance: give exactly one of z_da, seed, exemplar or albedo")
+        image (1, 3, H, W) in [0, 1], z_da fitted to an ``exemplar_view`` (an albedo map with the
+        geometry it was seen on; μ refined by ``fit_steps`` steps, :func:`fit_appearance`), or an
+        ``albedo`` map (1, 3, H, W) in [0, 1] used as I_da directly (the paper's direct editing; it
+        replaces G_da until another appearance is set)."""
+        if sum(x is not None for x in (z_da, seed, exemplar, albedo, exemplar_view)) != 1:
+            raise ValueError("set_appearance: give exactly one of z_da, seed, exemplar, exemplar_view or albedo")
         if albedo is not None:
             albedo = torch.as_tensor(albedo, dtype=torch.float32)
             if albedo.shape != (1, 3, self.camera.height, self.camera.width):
                 raise ValueError(f"set_appearance: albedo must be (1, 3, {self.camera.height}, {self.camera.width}), "
                                  f"got {tuple(albedo.shape)}")
             appearance = ("albedo", albedo.clamp(0, 1))
-        elif exemplar is not None:
-            appearance = ("z_da", self.ngp.appearance(exemplar=exemplar))
+        elif exemplar is not None or exemplar_view is not None:
+            appearance = ("z_da", self.ngp.appearance(exemplar=exemplar, view=exemplar_view, fit_steps=fit_steps))
         else:
             z = as_latent(seed if seed is not None else z_da, self.ngp.maps.config.latent_dim, "z_da")
             appearance = ("z_da", z[None])

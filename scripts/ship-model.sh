@@ -9,8 +9,10 @@
 # the card records the steps taken. The shape prior and the map networks share nothing, so they
 # train side by side, one CPU thread each. SHAPE_FROM=MODEL (a shipped name or a model folder)
 # keeps that model's shape prior and re-trains the maps only, on all the cores. MAPS_FROM=RUN (a maps run that reached
-# MAP_STEPS, or a model folder / shipped name) keeps its map networks and re-trains the G_sp^real stage only, into
-# maps_FAMILY_sp; SEED=N sets [train] seed (the shipped chair and car maps: SEED=1, the car's re-trained stage SEED=2, chosen on other shapes, bench/RESULTS.md).
+# MAP_STEPS, or a model folder / shipped name) keeps its map networks and trains the later stages only (the recipe's
+# [encoder] stage, which refits E_da, and G_sp^real), into maps_FAMILY_sp; SEED=N sets [train] seed (the shipped
+# chair and car maps: SEED=1; the chair's encoder and G_sp^real stages SEED=1, the car's re-trained stage SEED=2;
+# chosen on other shapes, bench/RESULTS.md).
 set -euo pipefail
 family=${1:?usage: scripts/ship-model.sh chair|car [MAP_STEPS] [SPECULAR_STEPS]}
 map_steps=${2:-4000}

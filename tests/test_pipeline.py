@@ -239,3 +239,16 @@ def test_fit_appearance_starts_at_the_encoder_and_lowers_the_exemplar_error(ngp_
     assert not fitted.requires_grad and fitted.shape == mu.shape
     assert error(fitted) < error(mu)
     assert all(torch.equal(v, ngp.maps.G_da.state_dict()[k]) for k, v in weights.items())
+
+    # the scene's handle: an exemplar seen on its own geometry gives the fitted code, and sets what G_da paints
+    from ngp_mi.pipeline import ExemplarView
+
+    exemplar_view = ExemplarView(exemplar, depth, mask, camera, mesh.bounds)
+    assert torch.equal(ngp.appearance(view=exemplar_view, fit_steps=40), fitted)
+    scene = NGPScene(ngp, resolution=32, variant="no_sp").set_shape(mesh=mesh).set_camera(camera=camera)
+    shown = scene.set_appearance(exemplar_view=exemplar_view, fit_steps=40).render(maps=True)["albedo"]
+    assert abs(float(((shown - exemplar).abs() * mask).sum() / (3 * mask.sum())) - error(fitted)) < 1e-5
+    with pytest.raises(ValueError, match=r"depth must be \(1, 1, 32, 32\)"):
+        ExemplarView(exemplar, depth[..., :16], mask, camera, mesh.bounds)
+    with pytest.raises(ValueError, match="no object pixel"):
+        ExemplarView(exemplar, depth, torch.zeros_like(mask), camera, mesh.bounds)

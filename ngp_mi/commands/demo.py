@@ -3,7 +3,7 @@
 For each NGP model (the shipped ``chair`` and ``car``, or the folders given), one section per handle,
 each image labelled with what changed (:func:`ngp_sections`): a camera orbit, a light orbit (count,
 colour and position change), appearance and shape sweeps, an exemplar transfer (E_da of a reference
-albedo map), the variants NGP / NGP-BP / NGP-plus side by side and every intermediate map. Then
+albedo map, and its code fitted to that map), the variants NGP / NGP-BP / NGP-plus side by side and every intermediate map. Then
 one inverse-rendering fit (:func:`fit_section`: a chair recovered from 8 views through Π_v), and
 the references, path traced by Mitsuba:
 
@@ -30,13 +30,14 @@ from ngp_mi.data.sources import resolve_source
 from ngp_mi.geometry.families import FAMILIES, generate
 from ngp_mi.lights import DirectionalLight, Light, PointLight, lights_to_json, overhead_rig
 from ngp_mi.models.pretrained import available
-from ngp_mi.pipeline import NGP, EmptyShape, NGPScene, display_maps
+from ngp_mi.pipeline import NGP, EmptyShape, ExemplarView, NGPScene, display_maps
 from ngp_mi.render.gbuffer import GBufferRenderer
 from ngp_mi.render.preview import object_shapes, preview_sheet
 from ngp_mi.render.scene import build_scene, render, set_sensor_camera
 from ngp_mi.viz import chw_to_uint8, contact_sheet, labelled_grid, save_animation, save_png, to_uint8
 
 FAMILY_VIEW = (15.0, 35.0)
+FIT_STEPS = 30  # the exemplar transfer's fitted row (compare --exemplar-steps 30: the chairs' 40-image figures)
 
 
 def family_sheet(family: str, out: str | Path, count: int = 16, resolution: int = 128, spp: int = 32,
@@ -64,12 +65,14 @@ def light_orbit_lights(step: int, steps: int) -> list[Light]:
     return lights
 
 
-def _reference_albedo(family: str, resolution: int) -> torch.Tensor:
-    """An albedo map to transfer: Mitsuba's G-buffer albedo of another object of the family (1, 3, H, W)."""
+def _reference_view(family: str, resolution: int) -> ExemplarView:
+    """An albedo map to transfer, with its geometry: Mitsuba's G-buffer of another object of the family."""
     content = resolve_source(family if family in FAMILIES else "chair", 1, seed=7)[0].load()
     camera = Camera.orbit(10.0, -30.0, resolution)
-    albedo = GBufferRenderer(content.shapes, content.bounds, camera, ("albedo", "mask")).render(camera)["albedo"]
-    return torch.from_numpy(np.ascontiguousarray(albedo)).permute(2, 0, 1)[None].float()
+    maps = GBufferRenderer(content.shapes, content.bounds, camera, ("albedo", "mask", "depth")).render(camera)
+    tensor = lambda a: torch.from_numpy(np.ascontiguousarray(a)).float()  # noqa: E731
+    return ExemplarView(tensor(maps["albedo"]).permute(2, 0, 1)[None], tensor(maps["depth"])[None, None],
+                        tensor(maps["mask"])[None, None], camera, np.asarray(content.bounds))
 
 
 def ngp_sections(ngp: NGP, name: str, out_dir: Path, resolution: int = 128, frames: int = 12,
@@ -149,14 +152,20 @@ def ngp_sections(ngp: NGP, name: str, out_dir: Path, resolution: int = 128, fram
     sections.append((f"{name}: appearance and shape", figures))
 
     # exemplar transfer
-    exemplar = _reference_albedo(family, resolution)
-    transferred = scene.set_appearance(exemplar=exemplar).render(maps=True)
-    step("exemplar")
+    reference = _reference_view(family, resolution)
+    rows = []
+    for appearance in ({"exemplar": reference.albedo}, {"exemplar_view": reference, "fit_steps": FIT_STEPS}):
+        transferred = scene.set_appearance(**appearance).render(maps=True)
+        rows.append([chw_to_uint8(reference.albedo), display_maps(transferred)["albedo"],
+                     chw_to_uint8(transferred["image"])])
+        step("exemplar")
     save_png(folder / "exemplar.png", labelled_grid(
-        [[chw_to_uint8(exemplar), display_maps(transferred)["albedo"], chw_to_uint8(transferred["image"])]],
-        [""], ["exemplar albedo (Mitsuba G-buffer)", "G_da with μ(E_da(exemplar))", "NGP image"]))
+        rows, ["μ(E_da(exemplar))", f"z_da fitted, {FIT_STEPS} steps"],
+        ["exemplar albedo (Mitsuba G-buffer)", "G_da", "NGP image"]))
     sections.append((f"{name}: exemplar transfer", [(rel("exemplar.png"),
-                                                     "the appearance of a reference albedo map, through E_da")]))
+                                                     "the appearance of a reference albedo map: the paper's handle "
+                                                     "(E_da's code), then that code fitted to the exemplar on its own "
+                                                     "geometry (pipeline.fit_appearance, beyond the paper)")]))
     scene.set_appearance(seed=0)
 
     # variants and every intermediate map

@@ -204,7 +204,8 @@ class MapsModel(BaseModel):
     """Owns the map networks, their optimisers and losses; :meth:`optimize` runs one training step."""
 
     network_names = ("G_n", "G_da", "G_depth", "E_da", "D_n", "D_da", "D_df", "D_depth", "D_noc")
-    optimizer_names = ("opt_G", "opt_D")
+    # opt_E: E_da alone, in the optional encoder stage (``[encoder]``, :meth:`optimize_encoder`)
+    optimizer_names = ("opt_G", "opt_D", "opt_E")
     config_class, config_key = MapsConfig, "maps"
     loss_names = ("gan_n", "gan_da", "gan_df", "gan_depth", "gan_noc", "cyc_n", "cyc_da", "cyc_df", "cyc_depth",
                   "cyc_noc", "cyc_z", "kl", "G", "D")
@@ -241,6 +242,8 @@ class MapsModel(BaseModel):
         betas = (c.beta1, 0.999)
         self.opt_G = torch.optim.Adam([p for m in generators for p in m.parameters()], lr=c.lr, betas=betas)
         self.opt_D = torch.optim.Adam([p for m in self.discriminators for p in m.parameters()], lr=c.lr, betas=betas)
+        # the E_da inference runs (the average with ema); its rate is the encoder stage's
+        self.opt_E = torch.optim.Adam(self.E_da.parameters(), lr=c.lr, betas=betas)
         self.lights = overhead_rig()
 
     @classmethod
@@ -442,6 +445,40 @@ class MapsModel(BaseModel):
             for group in optimizer.param_groups:
                 group["lr"] = self.config.lr * factor
         return self.config.lr * factor
+
+    def encoder_refit_loss(self, maps_batch: dict[str, Any]) -> torch.Tensor:
+        """L_E = Σ_p M |G_da(NOC(d), G_n(d), μ(E_da(I_da))) − I_da| / (3 Σ_p M), colours in [0, 1]: how far
+        the exemplar handle's albedo is from the exemplar, with the networks inference runs (the
+        averages with ``ema``) and z_da = μ, as inference reads it. Only E_da takes a gradient:
+        G_n's normals and G_da's condition are computed without one."""
+        depth, mask, albedo = maps_batch["depth"], maps_batch["mask"], maps_batch["albedo"]
+        with torch.no_grad():
+            normal = self.generate_normals(depth_to_net(depth, mask), cameras_of(maps_batch))
+            condition = torch.cat([self.noc(depth, mask, maps_batch), normal], 1)
+        mu, _ = self.generator("E_da")(2 * albedo - 1, mask)
+        reconstruction = (self.generator("G_da")(condition, mu) + 1) / 2
+        self.visuals = {"albedo_r": 2 * albedo - 1, "albedo_refit": 2 * reconstruction - 1}
+        return ((reconstruction - albedo).abs() * mask).sum() / (3 * mask.sum()).clamp_min(1.0)
+
+    def optimize_encoder(self, maps_batch: dict[str, Any], lr: float) -> dict[str, float]:
+        """One step of the encoder stage (beyond the paper; ``[encoder]`` in a recipe): E_da alone on
+        :meth:`encoder_refit_loss` at rate ``lr``, every other network fixed — μ(E_da) trained as an
+        amortised inversion of the trained G_da (the per-exemplar fit of
+        :func:`ngp_mi.pipeline.fit_appearance`, learned once). In the map stage E_da learns beside a
+        G_da that moves, and from z_da sampled around μ; here it learns the G_da that ships."""
+        encoder = self.generator("E_da")
+        for group in self.opt_E.param_groups:
+            group["lr"] = lr
+        flags = [(p, p.requires_grad) for p in self.parameters()]
+        self.requires_grad_(False)  # G_da's weights would take (and keep) a gradient otherwise
+        encoder.requires_grad_(True)
+        try:
+            loss = self.encoder_refit_loss(maps_batch)
+            self.optimizer_step(self.opt_E, loss)
+        finally:
+            for p, flag in flags:
+                p.requires_grad_(flag)
+        return {"encoder_l1": loss.item(), "lr": lr}
 
     def optimize_normals(self, maps_batch: dict[str, Any]) -> float:
         """One of the ``normal_steps`` − 1 extra steps of G_n alone: λ_n L_n^cyc of G_n on the paired

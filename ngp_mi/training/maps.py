@@ -13,6 +13,10 @@ The recipe (TOML; :mod:`ngp_mi.training.recipe`) has these tables:
 * ``[train]`` (:class:`MapsTrain`) — iterations, batch size, seed, output folder, how often to
   log, write image grids and checkpoints, the device (``"auto"``: CUDA when available) and the map
   stage's learning-rate schedule (``lr_decay_from``; the rate is logged as ``lr``).
+* ``[encoder]`` (optional; :class:`EncoderStage`) — beyond the paper: after the map stage, E_da
+  alone is trained for ``iterations`` more steps to invert the trained G_da (the exemplar handle's
+  z_da = μ(E_da(I_da)) against I_da, :meth:`~ngp_mi.models.maps.MapsModel.optimize_encoder`), on
+  ``num_shapes`` × ``views`` other shapes of ``[data] source`` rendered into ``<cache_dir>-encoder``.
 * ``[specular]`` (optional; :class:`SpecularStage` and the fields of
   :class:`~ngp_mi.models.specular.SpecularConfig`) — the second stage, the realistic specular
   generator G_sp^real, trained for ``iterations`` more steps with the map networks fixed, as the
@@ -56,7 +60,7 @@ from ngp_mi.training import loop
 from ngp_mi.training.recipe import from_table, out_override, positive, read_tables, record
 from ngp_mi.viz import contact_sheet, save_png
 
-TABLES = ("data", "model", "train", "specular")
+TABLES = ("data", "model", "train", "encoder", "specular")
 # Runs started together on one data cache (recipe arms side by side): the first renders it, the others
 # wait for it this long (seconds) and then find it complete, instead of failing on its lock.
 CACHE_WAIT_SECONDS = 3 * 3600
@@ -106,6 +110,26 @@ class MapsTrain:
 
 
 @dataclasses.dataclass(frozen=True)
+class EncoderStage:
+    """``[encoder]``: E_da refitted to the trained, fixed G_da (beyond the paper; off without the table).
+    Its data are shapes the map stage never saw (seeds from ``[data] seed`` + ``SEED_OFFSET``): only
+    E_da learns here, a network small enough to over-fit 200 shapes (bench/RESULTS.md), and
+    rendering 2,000 takes seconds."""
+    iterations: int
+    lr: float = 1e-4
+    batch_size: int = 16
+    num_shapes: int = 2000
+    views: int = 2
+
+    SEED_OFFSET = 1000  # shapes data.seed + 1000 …: the `cpu` recipe's validation (600–) and test (500–) shapes lie below
+
+    def __post_init__(self) -> None:
+        positive(self, "iterations", "batch_size", "num_shapes", "views")
+        if not 0 < self.lr <= 1:
+            raise ValueError(f"lr must lie in (0, 1], got {self.lr!r}")
+
+
+@dataclasses.dataclass(frozen=True)
 class SpecularStage:
     iterations: int
     real: str | None = None  # a folder of real images; rendered from [data] source when absent
@@ -122,6 +146,7 @@ class MapsRecipe:
     data: MapsData
     model: MapsConfig
     train: MapsTrain
+    encoder: EncoderStage | None
     stage: SpecularStage | None
     specular: SpecularConfig | None
     tables: dict[str, Any]  # as read, overrides applied: stored in checkpoints and recipe.json
@@ -134,8 +159,9 @@ class MapsRecipe:
         tables = read_tables(path, overrides, required=("data", "model", "train"), known=TABLES)
         stage, specular = from_table(tables, "specular", path, SpecularStage, SpecularConfig) \
             if "specular" in tables else (None, None)
+        encoder = from_table(tables, "encoder", path, EncoderStage)[0] if "encoder" in tables else None
         return cls(*from_table(tables, "data", path, MapsData), *from_table(tables, "model", path, MapsConfig),
-                   *from_table(tables, "train", path, MapsTrain), stage, specular, tables)
+                   *from_table(tables, "train", path, MapsTrain), encoder, stage, specular, tables)
 
 
 def prepare_data(data: MapsData, rank: int) -> tuple[Path, Path]:
@@ -209,6 +235,19 @@ def prepare_real_images(data: MapsData, stage: SpecularStage, rank: int) -> Path
         render_dataset(DatasetConfig(source=data.source, num_shapes=stage.num_shapes, views=stage.views,
                                      resolution=data.resolution, channels=("mask",), real_spp=stage.real_spp,
                                      seed=data.seed + 1), cache, progress=False, wait=CACHE_WAIT_SECONDS)
+    loop.barrier()
+    return cache
+
+
+def prepare_encoder_data(data: MapsData, stage: EncoderStage, rank: int) -> Path:
+    """The encoder stage's maps (depth, albedo, mask), rendered from ``[data] source`` into
+    ``<cache_dir>-encoder`` from seed ``data.seed + EncoderStage.SEED_OFFSET``."""
+    cache = Path(data.cache_dir + "-encoder")
+    if rank == 0:
+        render_dataset(DatasetConfig(source=data.source, num_shapes=stage.num_shapes, views=stage.views,
+                                     resolution=data.resolution, channels=("depth", "albedo", "mask"),
+                                     seed=data.seed + EncoderStage.SEED_OFFSET), cache, progress=False,
+                       wait=CACHE_WAIT_SECONDS)
     loop.barrier()
     return cache
 
@@ -288,7 +327,8 @@ def train_maps(config_path: str | Path, log=print, out: str | Path | None = None
                maps_from: str | Path | None = None) -> Path:
     """Train (or resume training) as the recipe says; ``out`` replaces ``[train] out``. With
     ``maps_from`` (a run whose map stage reached ``[train] iterations``, or a model folder / shipped
-    name) the run starts from its map networks there and trains the G_sp^real stage only
+    name) the run starts from its map networks there and trains the later stages only (E_da's
+    ``[encoder]``, G_sp^real's ``[specular]``)
     (:func:`seed_from_maps_run`, :func:`seed_from_model`). Returns the output folder."""
     overrides = [*overrides, *([out_override(out)] if out else [])]
     recipe = MapsRecipe.read(config_path, overrides)
@@ -296,8 +336,9 @@ def train_maps(config_path: str | Path, log=print, out: str | Path | None = None
     device, rank, world = loop.start_processes(train.device)
     out = Path(train.out)
     if maps_from is not None:
-        if recipe.specular is None:
-            raise ValueError(f"{config_path}: --maps-from trains the [specular] stage only, and the recipe has none")
+        if recipe.specular is None and recipe.encoder is None:
+            raise ValueError(f"{config_path}: --maps-from trains the stages after the map stage ([encoder], "
+                             "[specular]), and the recipe has neither")
         if rank == 0 and pretrained.is_training_run(maps_from):
             seed_from_maps_run(maps_from, out, train.iterations)
         elif rank == 0:
@@ -317,6 +358,10 @@ def train_maps(config_path: str | Path, log=print, out: str | Path | None = None
         real_root = prepare_real_images(recipe.data, recipe.stage, rank)
         real_batches = loop.SeededBatches(ImageFolderDataset(real_root, size=recipe.data.resolution, linear=True),
                                           train.batch_size, train.seed + 2 * 10 ** 6, rank, world)
+    encoder_batches = None
+    if recipe.encoder is not None:
+        encoder_batches = loop.SeededBatches(ReflectanceMapDataset(prepare_encoder_data(recipe.data, recipe.encoder, rank)),
+                                             recipe.encoder.batch_size, train.seed + 4 * 10 ** 6, rank, world)
     models = [model] + ([specular] if specular is not None else [])
     # A checkpoint from before the [specular] table holds the map networks only: the stage starts fresh.
     step, resumed_from = loop.resume(out, [model], optional=models[1:])
@@ -331,32 +376,37 @@ def train_maps(config_path: str | Path, log=print, out: str | Path | None = None
             m.gradient_hook = loop.average_gradients
 
     maps_iterations = train.iterations
-    iterations = maps_iterations + (recipe.stage.iterations if specular is not None else 0)
+    encoder_end = maps_iterations + (recipe.encoder.iterations if recipe.encoder is not None else 0)
+    iterations = encoder_end + (recipe.stage.iterations if specular is not None else 0)
     log_file = loop.JsonLog(out, step) if rank == 0 else None
     writer = loop.tensorboard(out) if rank == 0 else None
     bar = tqdm(total=iterations, initial=step, unit="it", disable=rank != 0, desc="train maps")
     start, first = time.perf_counter(), step
     while step < iterations:
         loop.reseed(train.seed, step, world, rank)
-        depth_batch = loop.to_device(depth_batches(step), device)
-        # the G_sp^real stage reads the map networks as inference does (with [model] ema: the averages)
+        # the later stages read the map networks as inference does (with [model] ema: the averages)
         model.train(step < maps_iterations)
         if step < maps_iterations:
             stage, visuals = "maps", model
             lr = model.scale_learning_rates(loop.linear_decay(step, maps_iterations, train.lr_decay_from))
-            losses = model.optimize(depth_batch, loop.to_device(maps_batches(step), device),
+            losses = model.optimize(loop.to_device(depth_batches(step), device),
+                                    loop.to_device(maps_batches(step), device),
                                     normal_step_batches(normal_batches, model.config, step, device))
             losses["lr"] = lr
+        elif step < encoder_end:
+            stage, visuals = "encoder", model
+            losses = model.optimize_encoder(loop.to_device(encoder_batches(step), device), recipe.encoder.lr)
         else:
             stage, visuals = "specular", specular
             exemplars = (loop.to_device(maps_batches(step), device)
                          if specular.config.diffuse_input == "exemplar" else None)
-            losses = specular.optimize(model, depth_batch, real_batches(step).to(device), exemplars)
+            losses = specular.optimize(model, loop.to_device(depth_batches(step), device),
+                                       real_batches(step).to(device), exemplars)
         step += 1
         bar.update(1)
         if log_file is None:
             continue
-        last = step == iterations or step == maps_iterations
+        last = step in (iterations, maps_iterations, encoder_end)
         if step % train.log_every == 0 or last:
             log_file.write({"step": step, "stage": stage, "time": round(time.perf_counter() - start, 3),
                             "it_per_s": round((step - first) / (time.perf_counter() - start), 3), "world": world,

@@ -349,3 +349,28 @@ def test_normal_steps_on_the_reconstructions_beside_the_papers_cycle(loaders):
     assert math.isfinite(model.optimize(depth, maps, [paired])["cyc_n_alone"])
     with pytest.raises(ValueError, match="needs the real maps' coarse depth"):
         model.optimize_normals(maps)
+
+
+@pytest.mark.parametrize("ema", [0.0, 0.9])
+def test_the_encoder_stage_moves_e_da_alone_and_lowers_the_exemplars_l1(loaders, ema):
+    """optimize_encoder: E_da (the average that inference runs, with ema) learns the trained G_da's
+    inverse — the L1 of G_da(NOC, G_n(d), μ(E_da(I_da))) against I_da falls on the batch it steps on;
+    no other weight moves or keeps a gradient, and each network's requires_grad is as before."""
+    torch.manual_seed(5)
+    config = dataclasses.replace(TINY, ema=ema, albedo_head="palette", palette_background="mask",
+                                 encoder_pool="masked", latent_mode="film")
+    model = MapsModel(config).eval()
+    _, maps = next(zip(*loaders))
+    flags = {name: p.requires_grad for name, p in model.named_parameters()}
+    before = {name: p.detach().clone() for name, p in model.named_parameters()}
+    first = model.encoder_refit_loss(maps).item()
+    history = [model.optimize_encoder(maps, lr=3e-3) for _ in range(15)]
+    assert all(math.isfinite(h["encoder_l1"]) and h["lr"] == 3e-3 for h in history)
+    assert abs(history[0]["encoder_l1"] - first) < 1e-6  # the loss it logs is the one it steps on
+    assert model.encoder_refit_loss(maps).item() < 0.8 * first
+    for name, p in model.named_parameters():
+        moved = not torch.equal(before[name], p)
+        # E_da_train (ema) stays too, and E_da's log σ² head: inference reads μ alone
+        assert moved == (name.startswith("E_da.") and not name.startswith("E_da.logvar.")), name
+        assert p.requires_grad == flags[name] and p.grad is None or name.startswith("E_da."), name
+    assert set(model.visuals) == {"albedo_r", "albedo_refit"}

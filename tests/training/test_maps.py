@@ -57,6 +57,56 @@ def test_a_maps_only_run_resumes_into_the_specular_stage(tmp_path):
     assert "G_sp" in {k.split(".")[0] for k in weights(run)}
 
 
+ENCODER_TABLE = "[encoder]\niterations = {}\nnum_shapes = 2\nviews = 2\nbatch_size = 2\nlr = 1e-3\n\n"
+
+
+def with_encoder(recipe: Path, iterations: int = 2, specular: bool = True) -> Path:
+    """``recipe`` with an [encoder] stage of ``iterations`` steps before its [specular] one (or instead)."""
+    text = recipe.read_text()
+    head, tail = text[:text.index("[specular]")], text[text.index("[specular]"):]
+    out = recipe.with_name(f"{recipe.stem}-encoder-{iterations}-{specular}.toml")
+    out.write_text(head + ENCODER_TABLE.format(iterations) + (tail if specular else ""))
+    return out
+
+
+def test_the_encoder_stage_trains_e_da_alone_between_the_stages_and_resumes_exactly(tmp_path):
+    """[encoder]: after the map stage, E_da alone on other shapes (``<cache_dir>-encoder``), then
+    G_sp^real; a run cut inside the stage resumes to the same weights; from a model folder
+    (--maps-from) the stage moves the folder's E_da and nothing else of it."""
+    from ngp_mi.models.pretrained import export_model
+
+    recipe = with_encoder(maps_recipe(tmp_path, "straight", iterations=2, device='"cpu"'))
+    straight = train_maps(recipe, log=lambda *_: None)
+    records = [json.loads(line) for line in (straight / "log.jsonl").read_text().splitlines()]
+    assert [r["stage"] for r in records] == ["maps"] * 2 + ["encoder"] * 2 + ["specular"] * 3
+    assert all(math.isfinite(r["encoder_l1"]) and r["lr"] == 1e-3 for r in records[2:4])
+    cache = json.loads(recipe.read_text().split("cache_dir = ")[1].split("\n")[0])
+    assert len(list(Path(cache + "-encoder").glob("**/*.exr"))) == 4  # 2 shapes x 2 views of other seeds
+
+    cut = with_encoder(maps_recipe(tmp_path, "resumed", iterations=2, device='"cpu"'), iterations=1, specular=False)
+    train_maps(cut, log=lambda *_: None)
+    assert [p.name for p in list_checkpoints(tmp_path / "resumed")] == ["ckpt-00000002", "ckpt-00000003"]
+    at_maps_end, after = (load_file(tmp_path / "resumed" / f"ckpt-0000000{i}" / "weights.safetensors") for i in (2, 3))
+    assert not torch.equal(at_maps_end["E_da.mu.weight"], after["E_da.mu.weight"])
+    assert all(torch.equal(at_maps_end[k], after[k]) for k in at_maps_end if not k.startswith("E_da."))
+    resumed = train_maps(with_encoder(maps_recipe(tmp_path, "resumed", iterations=2, device='"cpu"')),
+                         log=lambda *_: None)
+    a, b = weights(straight), weights(resumed)
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+    folder = export_model(tmp_path / "model", straight)
+    only = with_encoder(maps_recipe(tmp_path, "refit", iterations=2, device='"cpu"'), specular=False)
+    out = train_maps(only, log=lambda *_: None, maps_from=folder)
+    shipped = {k.removeprefix("maps."): v for k, v in load_file(folder / "maps.safetensors").items()
+               if k.startswith("maps.")}
+    refit = weights(out)
+    assert [json.loads(line)["stage"] for line in (out / "log.jsonl").read_text().splitlines()] == ["encoder"] * 2
+    moved = {k for k, v in shipped.items() if not torch.equal(refit[k], v)}
+    assert moved and all(k.startswith("E_da.mu.") or k.startswith("E_da.features.") for k in moved)
+    with pytest.raises(ValueError, match=r"\[encoder\] lr must lie in \(0, 1\]"):
+        train_maps(only, log=lambda *_: None, overrides=["encoder.lr=0"])
+
+
 def test_config_errors_name_the_table_and_field(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text(MAPS_TINY.read_text().replace("real_spp = 8", "real_sp = 8"))
