@@ -449,14 +449,11 @@ class MapsModel(BaseModel):
     def encoder_refit_loss(self, maps_batch: dict[str, Any]) -> torch.Tensor:
         """L_E = Σ_p M |G_da(NOC(d), G_n(d), μ(E_da(I_da))) − I_da| / (3 Σ_p M), colours in [0, 1]: how far
         the exemplar handle's albedo is from the exemplar, with the networks inference runs (the
-        averages with ``ema``) and z_da = μ, as inference reads it. Only E_da takes a gradient:
-        G_n's normals and G_da's condition are computed without one."""
+        averages with ``ema``) and z_da = μ, as inference reads it: the maps of :meth:`decorate`.
+        :meth:`optimize_encoder` freezes every weight but E_da's around it."""
         depth, mask, albedo = maps_batch["depth"], maps_batch["mask"], maps_batch["albedo"]
-        with torch.no_grad():
-            normal = self.generate_normals(depth_to_net(depth, mask), cameras_of(maps_batch))
-            condition = torch.cat([self.noc(depth, mask, maps_batch), normal], 1)
         mu, _ = self.generator("E_da")(2 * albedo - 1, mask)
-        reconstruction = (self.generator("G_da")(condition, mu) + 1) / 2
+        reconstruction = (self.decorate(depth, mask, maps_batch, mu)["albedo"] + 1) / 2
         self.visuals = {"albedo_r": 2 * albedo - 1, "albedo_refit": 2 * reconstruction - 1}
         return ((reconstruction - albedo).abs() * mask).sum() / (3 * mask.sum()).clamp_min(1.0)
 
