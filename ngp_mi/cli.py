@@ -316,7 +316,14 @@ def generate_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--variant", default=default(generate, "variant").replace("_", "-"),
                    choices=["ngp", "ngp-bp", "ngp-plus", "no-sp", "no-gn", "no-gda"],
                    help="NGP variant or ablation (default: %(default)s)")
-    p.add_argument("--exemplar", help="an albedo image: its appearance code (E_da) instead of a sampled z_da")
+    p.add_argument("--exemplar", help="an albedo image: its appearance code μ(E_da) instead of a sampled z_da")
+    p.add_argument("--exemplar-view", metavar="FOLDER",
+                   help="a `render-dataset` folder with albedo, depth and mask: z_da fitted to the albedo of one of "
+                        "its views on that view's own geometry (closer to the exemplar than --exemplar's code)")
+    p.add_argument("--exemplar-item", type=at_least(0), default=default(generate, "exemplar_item"), metavar="N",
+                   help="which view of --exemplar-view, in its manifest's order (default: %(default)s)")
+    p.add_argument("--fit-steps", type=at_least(0), default=default(generate, "fit_steps"), metavar="N",
+                   help="Adam steps of the --exemplar-view fit from μ(E_da); 0 keeps μ (default: %(default)s)")
     sweeps = p.add_argument_group("sweeps (each a labelled sheet in OUT/sweeps/)")
     sweeps.add_argument("--orbit-camera", type=at_least(0), default=0, metavar="N",
                         help="N views from φ -90° to 90° at the first view's elevation")
@@ -349,6 +356,7 @@ def generate(args: argparse.Namespace) -> int:
                        num=args.num,
                        seed=args.seed, views=views, resolution=args.res, lights=lights, added_lights=added,
                        variant=args.variant.replace("-", "_"), exemplar=args.exemplar,
+                       exemplar_view=args.exemplar_view, exemplar_item=args.exemplar_item, fit_steps=args.fit_steps,
                        sweeps=Sweeps(orbit_camera=args.orbit_camera, orbit_light=args.orbit_light,
                                      appearance_seeds=tuple(args.appearance_seeds),
                                      shape_seeds=tuple(args.shape_seeds), light_count=tuple(args.light_count),
@@ -484,6 +492,8 @@ def export_model_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--shape-run", help="a `train shape` output folder (G_shape)")
     p.add_argument("--shape-from", help="instead of --shape-run: keep G_shape (and its card facts) of this model "
                                         "folder or shipped name, when only the maps were re-trained")
+    p.add_argument("--specular-from", help="keep G_sp^real of this model folder or shipped name instead of the run's "
+                                           "stage (its G_n and G_da must be the run's)")
     p.add_argument("--out", required=True, help="the model folder (ngp_mi/pretrained/NAME to ship it)")
     p.add_argument("--family", default="", help="what the model draws (chair, car, …), for its card")
     p.add_argument("--figures", help="a JSON file of evaluation figures to put on the card")
@@ -503,7 +513,7 @@ def export_model(args: argparse.Namespace) -> int:
         raise ValueError("export-model: --maps-run is required (or --add-encoder SHAPE_RUN)")
     figures = json.loads(open(args.figures).read()) if args.figures else None
     out = export_model(args.out, args.maps_run, args.shape_run, family=args.family, figures=figures, notes=args.notes,
-                       shape_from=args.shape_from)
+                       shape_from=args.shape_from, specular_from=args.specular_from)
     card = json.loads((out / "card.json").read_text())
     total = sum(f["bytes"] for f in card["files"].values())
     print(f"export-model: {out} ({', '.join(card['files'])}; {total / 2 ** 20:.1f} MiB)")

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from ngp_mi.camera import PAPER_FOCAL_MM, PAPER_RADIUS, Camera
-from ngp_mi.data.datasets import read_image
+from ngp_mi.data.datasets import ReflectanceMapDataset, read_image
 from ngp_mi.geometry.mesh import TriangleMesh
 from ngp_mi.lights import Light, overhead_rig
 from ngp_mi.models.maps import DEPTH_CENTER, MapsModel, depth_to_net
@@ -128,7 +128,7 @@ def generate_albedo(maps: MapsModel, depth: torch.Tensor, mask: torch.Tensor, ca
 def albedo_condition(maps: MapsModel, depth: torch.Tensor, mask: torch.Tensor, camera: Camera, bounds: np.ndarray,
                      normal: torch.Tensor) -> torch.Tensor:
     """G_da's condition, NOC(d) beside N^g (the part of its input that does not depend on z_da)."""
-    return torch.cat([maps.noc(depth, mask, views_of(camera, bounds)), normal], 1)
+    return maps.albedo_condition(maps.noc(depth, mask, views_of(camera, bounds)), normal)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -150,6 +150,18 @@ class ExemplarView:
                                  f"got {tuple(getattr(self, name).shape)}")
         if float(self.mask.sum()) == 0:
             raise ValueError("ExemplarView: the mask holds no object pixel; there is no albedo to fit")
+
+    @classmethod
+    def from_dataset(cls, root: str | Path, item: int = 0) -> "ExemplarView":
+        """View ``item`` (in the manifest's (shape, view) order) of a ``render-dataset`` folder rendered
+        with the albedo, depth and mask channels: the true albedo map with its own geometry."""
+        dataset = ReflectanceMapDataset(root, ("albedo", "depth", "mask"))
+        if not 0 <= item < len(dataset):
+            raise ValueError(f"{root}: exemplar item {item} is out of range; the folder has {len(dataset)} views")
+        view = dataset[item]
+        h, w = view["depth"].shape[-2:]
+        camera = Camera.from_K_E(view["K"].numpy(), view["E"].numpy(), w, h)
+        return cls(view["albedo"][None], view["depth"][None], view["mask"][None], camera, view["bounds"].numpy())
 
 
 def fit_appearance(maps: MapsModel, exemplar: torch.Tensor, depth: torch.Tensor, mask: torch.Tensor, camera: Camera,

@@ -23,7 +23,7 @@ import torch
 from ngp_mi.atomic import write_json, write_text
 from ngp_mi.geometry.loaders import load_mesh
 from ngp_mi.lights import DirectionalLight, Light, lights_to_json, overhead_rig
-from ngp_mi.pipeline import NGP, EmptyShape, NGPScene, display_maps, exemplar_image
+from ngp_mi.pipeline import NGP, EmptyShape, ExemplarView, NGPScene, display_maps, exemplar_image
 from ngp_mi.viz import chw_to_uint8, labelled_grid, save_animation, save_png
 
 
@@ -62,13 +62,20 @@ def generate(maps_run: str | Path | None, out: str | Path, shape_run: str | Path
              mesh_path: str | None = None, model: str | None = None,
              num: int = 4, seed: int = 0, views: Sequence[tuple[float, float]] = ((10.0, -30.0), (10.0, 30.0)),
              resolution: int = 128, lights: Sequence[Light] | None = None, added_lights: Sequence[Light] = (),
-             variant: str = "ngp", exemplar: str | None = None, sweeps: Sweeps = Sweeps(),
+             variant: str = "ngp", exemplar: str | None = None, exemplar_view: str | None = None,
+             exemplar_item: int = 0, fit_steps: int = 30, sweeps: Sweeps = Sweeps(),
              command: Sequence[str] | None = None, log: Callable[[str], None] = print) -> dict[str, Any]:
     """``ngp-mi generate``: ``num`` shapes (z_s of ``seed`` …, or the user's mesh) × ``views`` (θ, φ in
     degrees) of the networks of ``maps_run`` (+ ``shape_run``) or of a shipped ``model`` (``chair``,
     ``car`` or a model folder; the default when no run is named is ``chair``); writes ``images/*.png``, ``sheet.png`` (depth, normals, albedo, specular, image per
     row), the ``sweeps`` (``sweeps/*.png``, ``*.gif``), ``generate.json`` (the settings and
-    ``command`` that re-run it) and ``report.md``."""
+    ``command`` that re-run it) and ``report.md``. Every shape takes one appearance code: μ(E_da) of
+    the albedo image ``exemplar`` (the paper's handle), or the code fitted in ``fit_steps`` steps to view
+    ``exemplar_item`` of the ``render-dataset`` folder ``exemplar_view`` (its albedo on its own geometry,
+    :func:`ngp_mi.pipeline.fit_appearance`); without either, z_da of ``seed`` + k for shape k."""
+    if exemplar and exemplar_view:
+        raise ValueError("generate: give --exemplar (an albedo image) or --exemplar-view (a render-dataset folder), "
+                         "not both")
     if maps_run and model:
         raise ValueError("generate: give --maps-run (training runs) or --model (a shipped model), not both")
     if maps_run is None:
@@ -84,8 +91,12 @@ def generate(maps_run: str | Path | None, out: str | Path, shape_run: str | Path
     out = Path(out)
     lights = list(lights) if lights is not None else overhead_rig()
     scene = NGPScene(ngp, resolution, variant).set_lights(lights, added_lights)
-    exemplar_tensor = exemplar_image(exemplar, resolution) if exemplar else None
-    shapes = _shapes(scene, mesh_path, seed, num, exemplar_tensor)
+    z_exemplar = None
+    if exemplar:
+        z_exemplar = ngp.appearance(exemplar=exemplar_image(exemplar, resolution))
+    elif exemplar_view:
+        z_exemplar = ngp.appearance(view=ExemplarView.from_dataset(exemplar_view, exemplar_item), fit_steps=fit_steps)
+    shapes = _shapes(scene, mesh_path, seed, num, z_exemplar)
     (out / "images").mkdir(parents=True, exist_ok=True)
     rows, labels, records, skipped = [], [], [], {}
     for name, set_shape in list(shapes):
@@ -115,7 +126,8 @@ def generate(maps_run: str | Path | None, out: str | Path, shape_run: str | Path
                 "num": num, "seed": seed, "views": [list(v) for v in views], "variant": variant,
                 "resolution": resolution, "lights": json.loads(lights_to_json(lights)),
                 "added_lights": json.loads(lights_to_json(added_lights)), "exemplar": exemplar,
-                "sweeps": dataclasses.asdict(sweeps)}
+                "exemplar_view": str(exemplar_view) if exemplar_view else None, "exemplar_item": exemplar_item,
+                "fit_steps": fit_steps, "sweeps": dataclasses.asdict(sweeps)}
     summary = {**settings, "command": list(command) if command else None, "images": records, "skipped": skipped,
                "sweep_files": swept,
                "stage_runs": dict(scene.stage_runs)}
@@ -125,12 +137,15 @@ def generate(maps_run: str | Path | None, out: str | Path, shape_run: str | Path
 
 
 def _shapes(scene: NGPScene, mesh_path: str | None, seed: int, num: int,
-            exemplar: torch.Tensor | None) -> list[tuple[str, Callable[[], None]]]:
+            z_exemplar: torch.Tensor | None) -> list[tuple[str, Callable[[], None]]]:
     """(name, a function that sets that shape and its appearance on the scene) for each shape."""
     def setter(k: int, **shape: Any) -> Callable[[], None]:
         def apply() -> None:
             scene.set_shape(**shape)
-            scene.set_appearance(exemplar=exemplar) if exemplar is not None else scene.set_appearance(seed=seed + k)
+            if z_exemplar is not None:
+                scene.set_appearance(z_exemplar)
+            else:
+                scene.set_appearance(seed=seed + k)
         return apply
 
     if mesh_path:
@@ -212,7 +227,10 @@ def _report(settings: dict[str, Any], labels: list[str], names: list[str], swept
     prior = settings["shape_run"] or settings["model"]
     shapes = (f"`{settings['mesh']}`" if settings["mesh"] else
               f"G_shape of `{prior}`, z_s seeds {settings['seed']}…{settings['seed'] + settings['num'] - 1}")
-    appearance = f"E_da of `{settings['exemplar']}`" if settings["exemplar"] else "z_da ~ N(0, I), one per shape"
+    appearance = ("μ(E_da) of `{}`".format(settings["exemplar"]) if settings["exemplar"] else
+                  "z_da fitted in {} steps to view {} of `{}`".format(settings["fit_steps"], settings["exemplar_item"],
+                                                                     settings["exemplar_view"])
+                  if settings["exemplar_view"] else "z_da ~ N(0, I), one per shape")
     added = f" + {len(settings['added_lights'])} added" if settings["added_lights"] else ""
     text = (f"# NGP images ({settings['variant']})\n\nMaps: {networks}; shapes: {shapes}; appearance: "
             f"{appearance}; {len(settings['lights'])} light(s){added}; {settings['resolution']}².\n\n"

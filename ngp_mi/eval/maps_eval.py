@@ -92,8 +92,7 @@ def evaluate_maps(run: str | Path, data: str | Path, out: str | Path, coarse_sig
         errors_gn.append(angular_error_deg(normal_gn, batch["normal"], both))
         errors_depth.append(angular_error_deg(normal_depth, batch["normal"], both))
 
-        noc = model.noc(depth, mask, batch)
-        condition = torch.cat([noc, batch["normal"]], 1)
+        condition = model.albedo_condition(model.noc(depth, mask, batch), batch["normal"])
         mu, _ = model.E_da(2 * batch["albedo"] - 1, mask)
         reconstruction = (model.G_da(condition, mu) + 1) / 2
         fidelity.append(l1_on_object(reconstruction, batch["albedo"], mask))

@@ -311,6 +311,12 @@ class MapsModel(BaseModel):
         """Whether :meth:`generate_normals` needs the input depth's own normals (and so its cameras)."""
         return self.config.normal_residual or self.config.normal_input != "depth"
 
+    @staticmethod
+    def albedo_condition(noc: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+        """G_da's condition, the one layout every caller uses: NOC(d) beside N (channels first), as G_da
+        reads them in I_da = G_da(NOC(d), N, z_da); z_da enters G_da apart from it (``latent_mode``)."""
+        return torch.cat([noc, normal], 1)
+
     def decorate(self, depth: torch.Tensor, mask: torch.Tensor, views: dict[str, Any], z: torch.Tensor,
                  cameras: list[Camera] | None = None) -> dict[str, torch.Tensor]:
         """The maps NGP generates for a depth map (paper Eq. image formation, inside R_BP):
@@ -322,7 +328,7 @@ class MapsModel(BaseModel):
         if cameras is None and self.uses_own_normals:
             cameras = cameras_of(views, depth.shape[-2:])
         normal = self.generate_normals(depth_net, cameras or [])
-        albedo = self.generator("G_da")(torch.cat([noc, normal], 1), z)
+        albedo = self.generator("G_da")(self.albedo_condition(noc, normal), z)
         return {"depth": depth_net, "noc": noc, "normal": normal, "albedo": albedo}
 
     # ------------------------------------------------------------------ one step
@@ -353,7 +359,7 @@ class MapsModel(BaseModel):
         z_encoded = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
         noc_real = self.noc(maps_batch["depth"], m_m, maps_batch)
         noc_for_albedo = noc_real if self.config.albedo_cycle_noc == "real" else noc_g
-        albedo_cycled_net = self.generator("G_da")(torch.cat([noc_for_albedo, normal_r], 1), z_encoded)
+        albedo_cycled_net = self.generator("G_da")(self.albedo_condition(noc_for_albedo, normal_r), z_encoded)
         diffuse_cycled = self.render_diffuse(normal_cycled, (albedo_cycled_net + 1) / 2, m_m, cams_m)
 
         self._for_d = {"normal": (normal_r, normal_g), "albedo": (albedo_r_net, albedo_g_net),

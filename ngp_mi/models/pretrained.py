@@ -123,16 +123,21 @@ def training_seconds(times: list[float]) -> float:
 
 def export_model(out: str | Path, maps_run: str | Path, shape_run: str | Path | None = None, family: str = "",
                  figures: dict[str, Any] | None = None, notes: str = "",
-                 shape_from: str | Path | None = None) -> Path:
+                 shape_from: str | Path | None = None, specular_from: str | Path | None = None) -> Path:
     """Write the inference networks of ``maps_run`` (and ``shape_run``) into the model folder ``out``.
 
     ``shape_from`` (a model folder or a shipped name, instead of ``shape_run``) keeps that model's
     G_shape and its card facts: the map networks and the shape prior train apart, so re-training
-    the maps need not re-train the prior."""
+    the maps need not re-train the prior. ``specular_from`` keeps that model's G_sp^real instead of
+    the run's stage: a stage trained on the same G_n and G_da (their weights must be equal, and the
+    maps' configuration: G_sp^real reads their images), chosen over a re-trained one."""
     if shape_run and shape_from:
         raise ValueError("export-model: --shape-run or --shape-from, not both")
     out = Path(out)
     maps, specular = MapsModel.from_run(maps_run), SpecularModel.from_run(maps_run)
+    specular_kept_from = None
+    if specular_from:
+        specular, specular_kept_from = _kept_specular(specular_from, maps, out)
     shape, shape_facts = None, None
     if shape_run:
         shape, shape_facts = ShapeModel.from_run(shape_run), _run_facts(Path(shape_run))
@@ -161,13 +166,35 @@ def export_model(out: str | Path, maps_run: str | Path, shape_run: str | Path | 
     for name, data in files.items():
         with atomic_path(out / name) as tmp:
             save_file(data, tmp)
-    card = {"family": family, "configs": configs, "maps": _run_facts(Path(maps_run)), "shape": shape_facts,
+    maps_facts = _run_facts(Path(maps_run))
+    if specular_kept_from:
+        maps_facts["specular_kept_from"] = specular_kept_from
+    card = {"family": family, "configs": configs, "maps": maps_facts, "shape": shape_facts,
             "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
                         "torch": torch.__version__},
             "figures": figures or {}, "notes": notes,
             "files": {name: _file_facts(out / name) for name in files}}
     write_json(out / "card.json", card)
     return out
+
+
+def _kept_specular(name_or_path: str | Path, maps: MapsModel, out: Path) -> tuple[SpecularModel, dict[str, Any]]:
+    """G_sp^real of a model folder, for maps networks ``maps`` (a run's), with where it came from."""
+    kept_maps, specular, _, card = load_model(name_or_path)  # read (and sha-checked) before out is written
+    where = f"export-model --specular-from {name_or_path}"
+    if specular is None:
+        raise ValueError(f"{where}: that model has no G_sp^real stage")
+    if kept_maps.config_dict()["maps"] != maps.config_dict()["maps"]:
+        raise ValueError(f"{where}: its [model] configuration differs from the run's; G_sp^real reads the images "
+                         "of the map networks it was trained on")
+    ours, theirs = _tensors(maps, ("G_n", "G_da"), "maps"), _tensors(kept_maps, ("G_n", "G_da"), "maps")
+    if ours.keys() != theirs.keys() or any(not torch.equal(ours[k], theirs[k]) for k in ours):
+        raise ValueError(f"{where}: its G_n and G_da differ from the run's, so its G_sp^real was trained on other "
+                         "maps")
+    facts = {**_provenance(name_or_path, card, "maps.safetensors"), "stage": card["maps"]}
+    if resolve(name_or_path).resolve() == out.resolve() and isinstance(card["maps"].get("specular_kept_from"), dict):
+        facts = card["maps"]["specular_kept_from"]  # re-exported over itself: the stage came from where it did
+    return specular, facts
 
 
 def add_encoder(folder: str | Path, source: str | Path) -> Path:

@@ -76,3 +76,31 @@ def test_every_sweep_is_a_labelled_sheet_and_the_run_can_be_repeated(runs, box_v
     for file in ("sheet.png", "sweeps/orbit_light.png", "sweeps/interpolation.png"):
         assert np.array_equal(np.asarray(Image.open(tmp_path / "s" / file)),
                               np.asarray(Image.open(tmp_path / "again" / file))), file
+
+
+def test_exemplar_view_fits_z_da_to_a_dataset_view(runs, box_view, tmp_path, capsys):
+    maps_run, _ = runs
+    folder = tmp_path / "exemplars"
+    assert main(["render-dataset", "--source", "chair", "--out", str(folder), "--num-shapes", "1", "--views", "2",
+                 "--res", "32", "--channels", "albedo,depth,mask", "--real-spp", "0", "--quiet"]) == 0
+    argv = ["generate", "--maps-run", str(maps_run), "--mesh", str(box_view), "--views", "5,0", "--res", "32",
+            "--exemplar-view", str(folder), "--exemplar-item", "1", "--fit-steps", "3"]
+    assert main([*argv, "--out", str(tmp_path / "v")]) == 0
+    summary = json.loads((tmp_path / "v" / "generate.json").read_text())
+    assert (summary["exemplar_view"], summary["exemplar_item"], summary["fit_steps"]) == (str(folder), 1, 3)
+    assert "z_da fitted in 3 steps to view 1 of" in (tmp_path / "v" / "report.md").read_text()
+    # the fitted code is not E_da's: 0 steps paints another albedo
+    assert main([*argv[:-2], "--fit-steps", "0", "--out", str(tmp_path / "mu")]) == 0
+    fitted, mu = (np.asarray(Image.open(tmp_path / d / "sheet.png")) for d in ("v", "mu"))
+    assert not np.array_equal(fitted, mu)
+    capsys.readouterr()
+    # bad input names what is wrong
+    assert main([*argv[:-4], "--exemplar-item", "2", "--out", str(tmp_path / "x")]) != 0
+    assert "exemplar item 2 is out of range; the folder has 2 views" in capsys.readouterr().err
+    assert main([*argv, "--exemplar", str(tmp_path / "a.png"), "--out", str(tmp_path / "x")]) != 0
+    assert "not both" in capsys.readouterr().err
+    depth_only = tmp_path / "depth_only"
+    assert main(["render-dataset", "--source", "chair", "--out", str(depth_only), "--num-shapes", "1", "--views", "1",
+                 "--res", "32", "--channels", "depth,mask", "--real-spp", "0", "--quiet"]) == 0
+    assert main([*argv[:-6], "--exemplar-view", str(depth_only), "--out", str(tmp_path / "x")]) != 0
+    assert "['albedo']" in capsys.readouterr().err

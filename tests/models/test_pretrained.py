@@ -104,6 +104,54 @@ def test_export_model_keeps_another_models_shape_prior_when_only_the_maps_are_re
     assert "not a shipped model" in capsys.readouterr().err
 
 
+def _perturbed_copy(folder, out, prefix):
+    """A copy of model ``folder`` whose tensors under ``prefix`` are moved (its card's sha256 follows)."""
+    import hashlib
+    import shutil
+
+    from safetensors.torch import load_file, save_file
+
+    shutil.copytree(folder, out)
+    weights = load_file(out / "maps.safetensors")
+    save_file({k: v + 0.01 if k.startswith(prefix) and v.is_floating_point() else v for k, v in weights.items()},
+              out / "maps.safetensors")
+    card = json.loads((out / "card.json").read_text())
+    card["files"]["maps.safetensors"]["sha256"] = hashlib.sha256((out / "maps.safetensors").read_bytes()).hexdigest()
+    (out / "card.json").write_text(json.dumps(card))
+    return out
+
+
+def test_export_model_keeps_another_models_specular_stage_trained_on_the_same_maps(exported, tmp_path, capsys):
+    folder, maps_run, _ = exported
+    other = _perturbed_copy(folder, tmp_path / "other_stage", "specular.")
+    assert main(["export-model", "--maps-run", str(maps_run), "--specular-from", str(other), "--out",
+                 str(tmp_path / "m")]) == 0
+    maps, specular, _, card = load_model(tmp_path / "m")
+    kept_maps, kept, _, kept_card = load_model(other)
+    run_maps, run_specular, _, _ = load_model(folder)
+    from ngp_mi.models.pretrained import INFERENCE_NETWORKS
+
+    def same(x, y, kind):
+        return all(torch.equal(a, b) for name in INFERENCE_NETWORKS[kind]
+                   for a, b in zip(getattr(x, name).state_dict().values(), getattr(y, name).state_dict().values()))
+
+    assert same(specular, kept, "specular") and not same(specular, run_specular, "specular")
+    assert same(maps, run_maps, "maps")
+    kept_from = card["maps"]["specular_kept_from"]
+    assert kept_from["sha256"] == kept_card["files"]["maps.safetensors"]["sha256"] and kept_from["model"] == str(other)
+    assert card["maps"]["run"] == str(maps_run) and card["configs"]["specular"] == kept_card["configs"]["specular"]
+    # re-exported over itself, the stage keeps naming where it came from
+    assert main(["export-model", "--maps-run", str(maps_run), "--specular-from", str(tmp_path / "m"), "--out",
+                 str(tmp_path / "m")]) == 0
+    assert load_model(tmp_path / "m")[3]["maps"]["specular_kept_from"] == kept_from
+    # a stage trained on other map networks is refused, naming why
+    capsys.readouterr()
+    other_maps = _perturbed_copy(folder, tmp_path / "other_maps", "maps.G_da.")
+    assert main(["export-model", "--maps-run", str(maps_run), "--specular-from", str(other_maps), "--out",
+                 str(tmp_path / "x")]) == 1
+    assert "G_n and G_da differ from the run's" in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+
 def test_the_card_adds_up_resumed_training_time_and_carries_the_runs_measurements(exported, tmp_path):
     from ngp_mi.models.pretrained import training_seconds
 
