@@ -452,14 +452,26 @@ class MapsModel(BaseModel):
                 group["lr"] = self.config.lr * factor
         return self.config.lr * factor
 
+    @torch.no_grad()
+    def encoder_condition(self, maps_batch: dict[str, Any]) -> torch.Tensor:
+        """G_da's condition NOC(d) beside G_n(d) for the views of ``maps_batch`` (depth, mask, K, E,
+        bounds), as :meth:`decorate` forms it with the networks inference runs: what the encoder stage
+        reads, fixed while only E_da learns (so it can be computed once per view)."""
+        depth, mask = maps_batch["depth"], maps_batch["mask"]
+        cameras = cameras_of(maps_batch) if self.uses_own_normals else []
+        normal = self.generate_normals(depth_to_net(depth, mask), cameras)
+        return self.albedo_condition(self.noc(depth, mask, maps_batch), normal)
+
     def encoder_refit_loss(self, maps_batch: dict[str, Any]) -> torch.Tensor:
         """L_E = Σ_p M |G_da(NOC(d), G_n(d), μ(E_da(I_da))) − I_da| / (3 Σ_p M), colours in [0, 1]: how far
         the exemplar handle's albedo is from the exemplar, with the networks inference runs (the
-        averages with ``ema``) and z_da = μ, as inference reads it: the maps of :meth:`decorate`.
-        :meth:`optimize_encoder` freezes every weight but E_da's around it."""
-        depth, mask, albedo = maps_batch["depth"], maps_batch["mask"], maps_batch["albedo"]
+        averages with ``ema``) and z_da = μ, as inference reads it. G_da's condition is the batch's
+        ``condition`` when it carries one (:meth:`encoder_condition`, computed once per view),
+        computed here otherwise. :meth:`optimize_encoder` freezes every weight but E_da's around it."""
+        mask, albedo = maps_batch["mask"], maps_batch["albedo"]
+        condition = maps_batch["condition"] if "condition" in maps_batch else self.encoder_condition(maps_batch)
         mu, _ = self.generator("E_da")(2 * albedo - 1, mask)
-        reconstruction = (self.decorate(depth, mask, maps_batch, mu)["albedo"] + 1) / 2
+        reconstruction = (self.generator("G_da")(condition, mu) + 1) / 2
         self.visuals = {"albedo_r": 2 * albedo - 1, "albedo_refit": 2 * reconstruction - 1}
         return ((reconstruction - albedo).abs() * mask).sum() / (3 * mask.sum()).clamp_min(1.0)
 

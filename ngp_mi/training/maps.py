@@ -47,6 +47,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
+from torch.utils.data import default_collate
 from tqdm import tqdm
 
 from ngp_mi.atomic import atomic_path, write_text
@@ -120,11 +121,14 @@ class EncoderStage:
     batch_size: int = 16
     num_shapes: int = 2000
     views: int = 2
+    cache_mib: int = 2048  # the views and their G_da condition held in memory when they fit; 0: read per batch
 
     SEED_OFFSET = 1000  # shapes data.seed + 1000 …: the `cpu` recipe's validation (600–) and test (500–) shapes lie below
 
     def __post_init__(self) -> None:
         positive(self, "iterations", "batch_size", "num_shapes", "views")
+        if self.cache_mib < 0:
+            raise ValueError(f"cache_mib must be >= 0, got {self.cache_mib!r}")
         if not 0 < self.lr <= 1:
             raise ValueError(f"lr must lie in (0, 1], got {self.lr!r}")
 
@@ -252,6 +256,51 @@ def prepare_encoder_data(data: MapsData, stage: EncoderStage, rank: int) -> Path
     return cache
 
 
+class EncoderViews(torch.utils.data.Dataset):
+    """The encoder stage's views held in memory with G_da's condition (albedo, mask, ``condition``;
+    :meth:`~ngp_mi.models.maps.MapsModel.encoder_condition`), computed once when the stage starts:
+    G_n and G_da are fixed in it, and reading each batch's EXR files and running G_n again took a
+    third of its step (bench/RESULTS.md)."""
+
+    def __init__(self, views: ReflectanceMapDataset, model: MapsModel, device: torch.device, chunk: int = 32):
+        parts: dict[str, list[torch.Tensor]] = {"albedo": [], "mask": [], "condition": []}
+        for start in range(0, len(views), chunk):
+            batch = loop.to_device(default_collate([views[i] for i in range(start, min(start + chunk, len(views)))]),
+                                   device)
+            parts["albedo"].append(batch["albedo"])
+            parts["mask"].append(batch["mask"])
+            parts["condition"].append(model.encoder_condition(batch))
+        self.tensors = {name: torch.cat(tensors) for name, tensors in parts.items()}
+
+    @staticmethod
+    def mebibytes(views: ReflectanceMapDataset) -> float:
+        """What the views would take: albedo, mask and the condition (NOC and N), float32."""
+        first = views[0]["mask"]
+        return len(views) * (3 + 1 + 6) * first.shape[-2] * first.shape[-1] * 4 / 2 ** 20
+
+    def __len__(self) -> int:
+        return len(self.tensors["mask"])
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        return {name: tensor[index] for name, tensor in self.tensors.items()}
+
+
+def encoder_batches_of(views: ReflectanceMapDataset, model: MapsModel, stage: EncoderStage, seed: int, rank: int,
+                       world: int, device: torch.device, log: Callable[[str], None]) -> loop.SeededBatches:
+    """The encoder stage's batches, from :class:`EncoderViews` when they fit in ``stage.cache_mib``
+    (the same batches as from the folder: the same items in the same order)."""
+    size = EncoderViews.mebibytes(views)
+    if size > stage.cache_mib:
+        log(f"train maps: [encoder] reads its {len(views)} views per batch ({size:.0f} MiB > cache_mib "
+            f"{stage.cache_mib})")
+        return loop.SeededBatches(views, stage.batch_size, seed, rank, world)
+    start = time.perf_counter()
+    cached = EncoderViews(views, model, device)
+    log(f"train maps: [encoder] holds its {len(views)} views and their G_da condition in memory "
+        f"({size:.0f} MiB, {time.perf_counter() - start:.0f} s)")
+    return loop.SeededBatches(cached, stage.batch_size, seed, rank, world)
+
+
 def image_grid(visuals: dict[str, torch.Tensor]) -> np.ndarray:
     """The first item of every visual (network range [−1, 1]) side by side, labelled."""
     tiles = []
@@ -358,10 +407,9 @@ def train_maps(config_path: str | Path, log=print, out: str | Path | None = None
         real_root = prepare_real_images(recipe.data, recipe.stage, rank)
         real_batches = loop.SeededBatches(ImageFolderDataset(real_root, size=recipe.data.resolution, linear=True),
                                           train.batch_size, train.seed + 2 * 10 ** 6, rank, world)
-    encoder_batches = None
+    encoder_views, encoder_batches = None, None
     if recipe.encoder is not None:
-        encoder_batches = loop.SeededBatches(ReflectanceMapDataset(prepare_encoder_data(recipe.data, recipe.encoder, rank)),
-                                             recipe.encoder.batch_size, train.seed + 4 * 10 ** 6, rank, world)
+        encoder_views = ReflectanceMapDataset(prepare_encoder_data(recipe.data, recipe.encoder, rank))
     models = [model] + ([specular] if specular is not None else [])
     # A checkpoint from before the [specular] table holds the map networks only: the stage starts fresh.
     step, resumed_from = loop.resume(out, [model], optional=models[1:])
@@ -395,6 +443,9 @@ def train_maps(config_path: str | Path, log=print, out: str | Path | None = None
             losses["lr"] = lr
         elif step < encoder_end:
             stage, visuals = "encoder", model
+            if encoder_batches is None:  # here, not before: G_da's condition is that of the final G_n
+                encoder_batches = encoder_batches_of(encoder_views, model, recipe.encoder, train.seed + 4 * 10 ** 6,
+                                                     rank, world, device, log if rank == 0 else lambda *_: None)
             losses = model.optimize_encoder(loop.to_device(encoder_batches(step), device), recipe.encoder.lr)
         else:
             stage, visuals = "specular", specular

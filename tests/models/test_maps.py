@@ -374,3 +374,10 @@ def test_the_encoder_stage_moves_e_da_alone_and_lowers_the_exemplars_l1(loaders,
         assert moved == (name.startswith("E_da.") and not name.startswith("E_da.logvar.")), name
         assert p.requires_grad == flags[name] and p.grad is None or name.startswith("E_da."), name
     assert set(model.visuals) == {"albedo_r", "albedo_refit"}
+    # G_da's condition computed once per view (the stage's in-memory views) gives the same loss, and
+    # it is decorate's: NOC(d) beside G_n(d)
+    condition = model.encoder_condition(maps)
+    assert torch.equal(model.encoder_refit_loss({**maps, "condition": condition}), model.encoder_refit_loss(maps))
+    with torch.no_grad():
+        decorated = model.decorate(maps["depth"], maps["mask"], maps, torch.zeros(len(condition), config.latent_dim))
+    assert torch.equal(condition, model.albedo_condition(decorated["noc"], decorated["normal"]))

@@ -105,6 +105,14 @@ def test_the_encoder_stage_trains_e_da_alone_between_the_stages_and_resumes_exac
     assert moved and all(k.startswith("E_da.mu.") or k.startswith("E_da.features.") for k in moved)
     with pytest.raises(ValueError, match=r"\[encoder\] lr must lie in \(0, 1\]"):
         train_maps(only, log=lambda *_: None, overrides=["encoder.lr=0"])
+    # the views held in memory with their condition (the default) step as the folder read per batch does
+    lines = []
+    per_batch = train_maps(only, log=lines.append, maps_from=folder, out=tmp_path / "per_batch",
+                           overrides=["encoder.cache_mib=0"])
+    assert any("reads its 4 views per batch" in line for line in lines)
+    c, d = weights(out), weights(per_batch)
+    assert all(torch.allclose(c[k], d[k], atol=1e-6) for k in c)
+    assert not all(torch.equal(c[k], shipped[k]) for k in shipped)
 
 
 def test_config_errors_name_the_table_and_field(tmp_path):
