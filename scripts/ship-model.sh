@@ -12,7 +12,9 @@
 # MAP_STEPS, or a model folder / shipped name) keeps its map networks and trains the later stages only (the recipe's
 # [encoder] stage, which refits E_da, and G_sp^real), into maps_FAMILY_sp; SEED=N sets [train] seed (the shipped
 # chair and car maps: SEED=1; the chair's encoder and G_sp^real stages SEED=1, the car's re-trained stage SEED=2;
-# chosen on other shapes, bench/RESULTS.md).
+# chosen on other shapes, bench/RESULTS.md). SPECULAR_FROM=MODEL ships that model's G_sp^real instead of the run's
+# (export-model --specular-from; it must have been trained on the same G_n and G_da: the shipped chair's); the
+# run's evaluate / compare figures on the card are then its own stage's, so measure the model folder as well.
 set -euo pipefail
 family=${1:?usage: scripts/ship-model.sh chair|car [MAP_STEPS] [SPECULAR_STEPS]}
 map_steps=${2:-4000}
@@ -59,5 +61,5 @@ wait "$maps"
 "$bin" compare --source "$family" --out "$maps_run/compare" --num-shapes 10 --views 4 --res 64 \
   --seed 500 --lights rig --maps-checkpoint "$maps_run"
 "$bin" export-model --maps-run "$maps_run" "${shape_args[@]}" \
-  --out "ngp_mi/pretrained/$family" --family "$family" \
-  --notes "${SHAPE_FROM:+SHAPE_FROM=$SHAPE_FROM }${MAPS_FROM:+MAPS_FROM=$MAPS_FROM }${SEED:+SEED=$SEED }scripts/ship-model.sh $family $map_steps $specular_steps on $(nproc --all) CPU cores, $(date -u +%F)"
+  ${SPECULAR_FROM:+--specular-from "$SPECULAR_FROM"} --out "ngp_mi/pretrained/$family" --family "$family" \
+  --notes "${SHAPE_FROM:+SHAPE_FROM=$SHAPE_FROM }${MAPS_FROM:+MAPS_FROM=$MAPS_FROM }${SPECULAR_FROM:+SPECULAR_FROM=$SPECULAR_FROM }${SEED:+SEED=$SEED }scripts/ship-model.sh $family $map_steps $specular_steps on $(nproc --all) CPU cores, $(date -u +%F)"
