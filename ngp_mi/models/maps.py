@@ -317,19 +317,25 @@ class MapsModel(BaseModel):
         reads them in I_da = G_da(NOC(d), N, z_da); z_da enters G_da apart from it (``latent_mode``)."""
         return torch.cat([noc, normal], 1)
 
+    def geometry_maps(self, depth: torch.Tensor, mask: torch.Tensor, views: dict[str, Any],
+                      cameras: list[Camera] | None = None) -> dict[str, torch.Tensor]:
+        """The part of :meth:`decorate` that does not depend on z_da: network-space ``depth``, its
+        ``noc`` and N^g = G_n(d) as ``normal``. ``views`` holds K, E and bounds per image; ``cameras``
+        are its cameras when the caller has them (built from ``views`` otherwise)."""
+        if cameras is None and self.uses_own_normals:
+            cameras = cameras_of(views, depth.shape[-2:])
+        depth_net = depth_to_net(depth, mask)
+        return {"depth": depth_net, "noc": self.noc(depth, mask, views),
+                "normal": self.generate_normals(depth_net, cameras or [])}
+
     def decorate(self, depth: torch.Tensor, mask: torch.Tensor, views: dict[str, Any], z: torch.Tensor,
                  cameras: list[Camera] | None = None) -> dict[str, torch.Tensor]:
         """The maps NGP generates for a depth map (paper Eq. image formation, inside R_BP):
-        N^g = G_n(d), I_da^g = G_da(NOC(d), N^g, z_da). ``views`` holds K, E and bounds per image;
-        ``cameras`` are its cameras when the caller has them (built from ``views`` otherwise).
+        N^g = G_n(d), I_da^g = G_da(NOC(d), N^g, z_da) (:meth:`geometry_maps`, then G_da).
         Returns network-space ``depth``, ``noc``, ``albedo`` (2x − 1) and unit-length-ish ``normal``."""
-        depth_net = depth_to_net(depth, mask)
-        noc = self.noc(depth, mask, views)
-        if cameras is None and self.uses_own_normals:
-            cameras = cameras_of(views, depth.shape[-2:])
-        normal = self.generate_normals(depth_net, cameras or [])
-        albedo = self.generator("G_da")(self.albedo_condition(noc, normal), z)
-        return {"depth": depth_net, "noc": noc, "normal": normal, "albedo": albedo}
+        maps = self.geometry_maps(depth, mask, views, cameras)
+        albedo = self.generator("G_da")(self.albedo_condition(maps["noc"], maps["normal"]), z)
+        return {**maps, "albedo": albedo}
 
     # ------------------------------------------------------------------ one step
     def forward(self, depth_batch: dict[str, Any], maps_batch: dict[str, Any]) -> dict[str, torch.Tensor]:
@@ -457,10 +463,8 @@ class MapsModel(BaseModel):
         """G_da's condition NOC(d) beside G_n(d) for the views of ``maps_batch`` (depth, mask, K, E,
         bounds), as :meth:`decorate` forms it with the networks inference runs: what the encoder stage
         reads, fixed while only E_da learns (so it can be computed once per view)."""
-        depth, mask = maps_batch["depth"], maps_batch["mask"]
-        cameras = cameras_of(maps_batch) if self.uses_own_normals else []
-        normal = self.generate_normals(depth_to_net(depth, mask), cameras)
-        return self.albedo_condition(self.noc(depth, mask, maps_batch), normal)
+        maps = self.geometry_maps(maps_batch["depth"], maps_batch["mask"], maps_batch)
+        return self.albedo_condition(maps["noc"], maps["normal"])
 
     def encoder_refit_loss(self, maps_batch: dict[str, Any]) -> torch.Tensor:
         """L_E = Σ_p M |G_da(NOC(d), G_n(d), μ(E_da(I_da))) − I_da| / (3 Σ_p M), colours in [0, 1]: how far
